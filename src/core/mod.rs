@@ -1,0 +1,14 @@
+//! The pure, synchronous BGK core: keys and blocks, the sparse kernel, scan → training data →
+//! evidence, the evidence map, and point / box / ray queries.
+//!
+//! Nothing here does I/O, spawns tasks or knows about a network transport. Evidence is integer
+//! fixed-point (see [`evidence`]), so every way of combining the same scans gives the same bits.
+
+pub mod evidence;
+pub mod kernel;
+pub mod key;
+pub mod map;
+pub mod params;
+pub mod query;
+pub mod training;
+
