@@ -1,4 +1,5 @@
 //! The `bgkmap` command line (being written).
+pub mod plot;
 pub fn main() -> std::process::ExitCode {
     std::process::ExitCode::SUCCESS
 }

@@ -12,3 +12,6 @@ pub mod params;
 pub mod query;
 pub mod training;
 
+pub use key::{BlockKey, CellKey};
+pub use map::{CellEstimate, CellState, EvidenceMap, Integrator};
+pub use params::{MapParams, RangeMode, Thresholds};

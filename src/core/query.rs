@@ -1,1 +1,258 @@
-//! (being written)
+//! Point, box and ray queries over an [`EvidenceMap`], all in-process and read-only.
+//!
+//! Geometric arguments are world-frame metres. Answers name the cell they came from.
+
+use super::key::{BLOCK_CELLS, CellKey};
+use super::map::{CellEstimate, CellState, EvidenceMap, Evidence};
+use super::params::Thresholds;
+
+/// One answer of a point query.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PointAnswer {
+    pub cell: CellKey,
+    pub estimate: CellEstimate,
+}
+
+/// Answers for points in the world frame (metres). Points outside the key range or not finite
+/// answer `None`.
+pub fn query_points(map: &EvidenceMap, points_world: &[[f64; 3]], th: &Thresholds) -> Vec<Option<PointAnswer>> {
+    let res = map.params().resolution_m;
+    points_world
+        .iter()
+        .map(|&p| CellKey::from_point(p, res).map(|cell| PointAnswer { cell, estimate: map.estimate(cell, th) }))
+        .collect()
+}
+
+/// An axis-aligned box query.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BoxQuery {
+    pub min_world: [f64; 3],
+    pub max_world: [f64; 3],
+    /// Keep only cells in this state (`None`: every cell with evidence).
+    pub state: Option<CellState>,
+    /// Aggregate 2^coarsen cells per axis into one answer (evidence summed over the children).
+    pub coarsen: u8,
+}
+
+/// A cube of the answer: `size_cells` cells per edge starting at `min_cell`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BoxCell {
+    pub min_cell: CellKey,
+    pub size_cells: i32,
+    pub estimate: CellEstimate,
+}
+
+/// Why a box query was refused.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum BoxError {
+    #[error("box: min and max must be finite with min ≤ max on every axis")]
+    Malformed,
+    #[error("box: {cells} cells exceeds the limit of {limit}; shrink the box or coarsen")]
+    TooLarge { cells: u128, limit: u64 },
+    #[error("box: coarsen must be at most 10, got {0}")]
+    Coarsen(u8),
+}
+
+/// Cells inside `q` (inclusive of boundary cells) that hold evidence, sorted by key; coarse
+/// cubes sum their children's evidence. `max_cells` bounds the number of lattice positions
+/// visited (at the query's coarsened resolution).
+pub fn query_box(map: &EvidenceMap, q: &BoxQuery, th: &Thresholds, max_cells: u64) -> Result<Vec<BoxCell>, BoxError> {
+    if q.coarsen > 10 {
+        return Err(BoxError::Coarsen(q.coarsen));
+    }
+    let res = map.params().resolution_m;
+    let (lo, hi) = match (CellKey::from_point(q.min_world, res), CellKey::from_point(q.max_world, res)) {
+        (Some(lo), Some(hi)) if lo.x <= hi.x && lo.y <= hi.y && lo.z <= hi.z => (lo, hi),
+        _ => return Err(BoxError::Malformed),
+    };
+    let s = q.coarsen;
+    let c = |v: i32| v >> s;
+    let span = |a: i32, b: i32| (i64::from(c(b)) - i64::from(c(a)) + 1) as u128;
+    let cells = span(lo.x, hi.x) * span(lo.y, hi.y) * span(lo.z, hi.z);
+    if cells > u128::from(max_cells) {
+        return Err(BoxError::TooLarge { cells, limit: max_cells });
+    }
+    let mut out = Vec::new();
+    let size = 1i32 << s;
+    for z in c(lo.z)..=c(hi.z) {
+        for y in c(lo.y)..=c(hi.y) {
+            for x in c(lo.x)..=c(hi.x) {
+                let min_cell = CellKey::new(x << s, y << s, z << s);
+                let e = coarse_evidence(map, min_cell, size, lo, hi);
+                if e.is_empty() {
+                    continue;
+                }
+                let estimate = CellEstimate::from_evidence(e, map.params(), th);
+                if q.state.is_none_or(|st| st == estimate.state) {
+                    out.push(BoxCell { min_cell, size_cells: size, estimate });
+                }
+            }
+        }
+    }
+    Ok(out)
+}
+
+fn coarse_evidence(map: &EvidenceMap, min: CellKey, size: i32, lo: CellKey, hi: CellKey) -> Evidence {
+    if size == 1 {
+        return map.evidence(min);
+    }
+    let mut e = Evidence::default();
+    let r = |m: i32, a: i32, b: i32| m.max(a)..=(m + size - 1).min(b);
+    for z in r(min.z, lo.z, hi.z) {
+        for y in r(min.y, lo.y, hi.y) {
+            for x in r(min.x, lo.x, hi.x) {
+                let ce = map.evidence(CellKey::new(x, y, z));
+                e.a += ce.a;
+                e.b += ce.b;
+            }
+        }
+    }
+    e
+}
+
+/// Counts of cells with evidence inside a box, per state.
+pub fn count_box(cells: &[BoxCell]) -> [usize; 3] {
+    let mut n = [0usize; 3];
+    for c in cells {
+        n[c.estimate.state as usize] += 1;
+    }
+    n
+}
+
+/// Where a ray stops.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StopAt {
+    /// Stop at the first occupied cell; free and unknown cells are passed.
+    Occupied,
+    /// Stop at the first cell that is not free (occupied or unknown).
+    NotFree,
+}
+
+/// One ray's verdict.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum RayHit {
+    /// The ray reached its max range without stopping.
+    Clear,
+    /// The first stopping cell, the distance (m) at which the ray enters it, and its estimate.
+    Blocked { cell: CellKey, distance_m: f64, estimate: CellEstimate },
+}
+
+/// Why a ray could not be cast.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum RayError {
+    #[error("ray: origin must be finite and inside the map's key range")]
+    Origin,
+    #[error("ray: direction must be finite and non-zero")]
+    Direction,
+    #[error("ray: max_range must be finite and in (0, {0}] m")]
+    Range(f64),
+}
+
+/// Longest ray accepted, in cells (bounds the work per ray).
+pub const MAX_RAY_CELLS: f64 = 1.0e6;
+
+/// Walks the cells a ray passes through (Amanatides–Woo), from the origin's cell, until a cell
+/// matching `stop` or `max_range_m`. The origin cell itself is tested too.
+pub fn cast_ray(
+    map: &EvidenceMap,
+    origin_world: [f64; 3],
+    direction_world: [f64; 3],
+    max_range_m: f64,
+    stop: StopAt,
+    th: &Thresholds,
+) -> Result<RayHit, RayError> {
+    let res = map.params().resolution_m;
+    let limit = MAX_RAY_CELLS * res;
+    if !(max_range_m.is_finite() && max_range_m > 0.0 && max_range_m <= limit) {
+        return Err(RayError::Range(limit));
+    }
+    let norm = direction_world.iter().map(|v| v * v).sum::<f64>().sqrt();
+    if !(norm.is_finite() && norm > 0.0) {
+        return Err(RayError::Direction);
+    }
+    let dir = direction_world.map(|v| v / norm);
+    let mut cell = CellKey::from_point(origin_world, res).ok_or(RayError::Origin)?;
+    let far = origin_world.iter().zip(&dir).map(|(o, d)| o + d * max_range_m);
+    if far.clone().any(|v| !(v / res).abs().lt(&(i32::MAX as f64 - 2.0))) {
+        return Err(RayError::Origin);
+    }
+    let mut walk = VoxelWalk::new(origin_world, dir, cell, res);
+    let mut entry_m = 0.0;
+    loop {
+        let estimate = map.estimate(cell, th);
+        let stops = match stop {
+            StopAt::Occupied => estimate.state == CellState::Occupied,
+            StopAt::NotFree => estimate.state != CellState::Free,
+        };
+        if stops {
+            return Ok(RayHit::Blocked { cell, distance_m: entry_m, estimate });
+        }
+        let (next_cell, next_entry) = walk.step();
+        if next_entry > max_range_m {
+            return Ok(RayHit::Clear);
+        }
+        cell = next_cell;
+        entry_m = next_entry;
+    }
+}
+
+/// Incremental voxel traversal state (distances in metres along the unit direction).
+#[derive(Debug)]
+struct VoxelWalk {
+    cell: [i32; 3],
+    step: [i32; 3],
+    t_max: [f64; 3],
+    t_delta: [f64; 3],
+}
+
+impl VoxelWalk {
+    fn new(origin: [f64; 3], dir: [f64; 3], cell: CellKey, res: f64) -> Self {
+        let c = [cell.x, cell.y, cell.z];
+        let mut step = [0; 3];
+        let mut t_max = [f64::INFINITY; 3];
+        let mut t_delta = [f64::INFINITY; 3];
+        for i in 0..3 {
+            if dir[i] > 0.0 {
+                step[i] = 1;
+                t_max[i] = ((f64::from(c[i]) + 1.0) * res - origin[i]) / dir[i];
+                t_delta[i] = res / dir[i];
+            } else if dir[i] < 0.0 {
+                step[i] = -1;
+                t_max[i] = (f64::from(c[i]) * res - origin[i]) / dir[i];
+                t_delta[i] = -res / dir[i];
+            }
+        }
+        Self { cell: c, step, t_max, t_delta }
+    }
+
+    /// Moves to the next cell; returns it and the distance at which the ray enters it.
+    fn step(&mut self) -> (CellKey, f64) {
+        let i = if self.t_max[0] <= self.t_max[1] && self.t_max[0] <= self.t_max[2] {
+            0
+        } else if self.t_max[1] <= self.t_max[2] {
+            1
+        } else {
+            2
+        };
+        let entry = self.t_max[i].max(0.0);
+        self.cell[i] += self.step[i];
+        self.t_max[i] += self.t_delta[i];
+        (CellKey::new(self.cell[0], self.cell[1], self.cell[2]), entry)
+    }
+}
+
+/// The cells a ray passes through up to `max_range_m` (for tests and traversal listings).
+pub fn traverse(origin_world: [f64; 3], dir_unit: [f64; 3], max_range_m: f64, res: f64) -> Vec<CellKey> {
+    let Some(cell) = CellKey::from_point(origin_world, res) else { return Vec::new() };
+    let mut walk = VoxelWalk::new(origin_world, dir_unit, cell, res);
+    let mut out = vec![cell];
+    loop {
+        let (c, entry) = walk.step();
+        if entry > max_range_m {
+            return out;
+        }
+        out.push(c);
+    }
+}
+
+const _: () = assert!(BLOCK_CELLS == 512);

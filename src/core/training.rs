@@ -1,1 +1,229 @@
-//! (being written)
+//! One scan → labelled training points (algorithm.md §4).
+//!
+//! 1. Non-finite points are dropped (and counted).
+//! 2. Hits are downsampled to the centroid of each `floor(x/ds)` voxel.
+//! 3. Each centroid `h` at range `r = |h − o|`:
+//!    - `r ≤ max_range` (or max_range = 0): a hit (label 1) plus free samples along `o → h`;
+//!    - `r > max_range`, [`RangeMode::Truncate`] (default): no hit; the ray is a free-only ray of
+//!      length `max_range` (the beam crossed that much free space), sampled like any other ray;
+//!    - `r > max_range`, [`RangeMode::Drop`]: discarded entirely (la3dm).
+//! 4. Free samples sit at `d = fr, 2fr, … < L` and, if `L > fr`, one more at `L − fr`, where `L`
+//!    is the ray length; the end point itself is never a free sample.
+//! 5. The sensor origin is one more free sample (once per scan, if `origin_as_free`).
+//! 6. All free samples are downsampled to voxel centroids at `ds`, separately from hits.
+//!
+//! Output order is first-occurrence order of each voxel, so the same scan always gives the same
+//! training set, bit for bit.
+
+use super::params::{MapParams, RangeMode};
+use rustc_hash::FxHashMap;
+
+/// Labelled training points of one scan, in world metres.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct TrainingSet {
+    /// Downsampled hit centroids (label 1).
+    pub hits: Vec<[f64; 3]>,
+    /// Downsampled free-space samples (label 0).
+    pub frees: Vec<[f64; 3]>,
+    /// Input points that were not finite or lay outside the key range.
+    pub dropped_points: usize,
+    /// Hit voxels before the range test.
+    pub hit_voxels: usize,
+    /// Centroids beyond max range (truncated or dropped, per the range mode).
+    pub beyond_range: usize,
+}
+
+impl TrainingSet {
+    pub fn len(&self) -> usize {
+        self.hits.len() + self.frees.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// Reusable voxel-centroid accumulator (keeps its allocations between scans).
+#[derive(Debug, Default)]
+pub struct VoxelCentroids {
+    index: FxHashMap<[i32; 3], u32>,
+    sums: Vec<([f64; 3], u32)>,
+}
+
+impl VoxelCentroids {
+    fn clear(&mut self) {
+        self.index.clear();
+        self.sums.clear();
+    }
+
+    /// Adds a point; returns false if its voxel key does not fit in i32.
+    #[inline]
+    fn add(&mut self, p: [f64; 3], inv_ds: f64) -> bool {
+        let Some(key) = voxel_key(p, inv_ds) else { return false };
+        let next = self.sums.len() as u32;
+        let slot = *self.index.entry(key).or_insert(next);
+        if slot == next {
+            self.sums.push((p, 1));
+        } else {
+            let s = &mut self.sums[slot as usize];
+            s.0 = [s.0[0] + p[0], s.0[1] + p[1], s.0[2] + p[2]];
+            s.1 += 1;
+        }
+        true
+    }
+
+    fn centroids_into(&self, out: &mut Vec<[f64; 3]>) {
+        out.clear();
+        out.extend(self.sums.iter().map(|&(s, n)| {
+            let n = f64::from(n);
+            [s[0] / n, s[1] / n, s[2] / n]
+        }));
+    }
+}
+
+#[inline]
+fn voxel_key(p: [f64; 3], inv_ds: f64) -> Option<[i32; 3]> {
+    let k = |v: f64| {
+        let f = (v * inv_ds).floor();
+        (f >= -1.0e9 && f <= 1.0e9).then_some(f as i32)
+    };
+    Some([k(p[0])?, k(p[1])?, k(p[2])?])
+}
+
+/// Builds training sets; holds scratch space so repeated scans allocate nothing new.
+#[derive(Debug, Default)]
+pub struct TrainingBuilder {
+    hits: VoxelCentroids,
+    frees: VoxelCentroids,
+    centroids: Vec<[f64; 3]>,
+}
+
+impl TrainingBuilder {
+    /// Training data for `points_world` seen from `origin_world` (both metres, world frame).
+    pub fn build(&mut self, points_world: &[[f32; 3]], origin_world: [f64; 3], params: &MapParams) -> TrainingSet {
+        let mut out = TrainingSet::default();
+        self.build_into(points_world, origin_world, params, &mut out);
+        out
+    }
+
+    pub fn build_into(
+        &mut self,
+        points_world: &[[f32; 3]],
+        origin_world: [f64; 3],
+        params: &MapParams,
+        out: &mut TrainingSet,
+    ) {
+        let inv_ds = 1.0 / params.ds_resolution_m;
+        self.hits.clear();
+        self.frees.clear();
+        out.hits.clear();
+        out.dropped_points = 0;
+        out.beyond_range = 0;
+        for p in points_world {
+            let p = [f64::from(p[0]), f64::from(p[1]), f64::from(p[2])];
+            if !(p.iter().all(|v| v.is_finite()) && self.hits.add(p, inv_ds)) {
+                out.dropped_points += 1;
+            }
+        }
+        self.hits.centroids_into(&mut self.centroids);
+        out.hit_voxels = self.centroids.len();
+        let o = origin_world;
+        let fr = params.free_resolution_m;
+        let max_r = params.max_range_m;
+        for &h in &self.centroids {
+            let v = [h[0] - o[0], h[1] - o[1], h[2] - o[2]];
+            let r = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+            let ray_len = if max_r > 0.0 && r > max_r {
+                out.beyond_range += 1;
+                match params.range_mode {
+                    RangeMode::Drop => continue,
+                    RangeMode::Truncate => max_r,
+                }
+            } else {
+                out.hits.push(h);
+                r
+            };
+            if r > 0.0 {
+                let n = [v[0] / r, v[1] / r, v[2] / r];
+                add_free_ray(&mut self.frees, o, n, ray_len, fr, inv_ds);
+            }
+        }
+        if params.origin_as_free {
+            self.frees.add(o, inv_ds);
+        }
+        self.frees.centroids_into(&mut out.frees);
+    }
+
+}
+
+/// Free samples along the unit direction `n` from `o`: `fr, 2fr, … < ray_len`, plus `ray_len − fr`.
+fn add_free_ray(frees: &mut VoxelCentroids, o: [f64; 3], n: [f64; 3], ray_len: f64, fr: f64, inv_ds: f64) {
+    let at = |d: f64| [o[0] + n[0] * d, o[1] + n[1] * d, o[2] + n[2] * d];
+    let mut i = 1u32;
+    loop {
+        let d = f64::from(i) * fr;
+        if !(d < ray_len) {
+            break;
+        }
+        frees.add(at(d), inv_ds);
+        i += 1;
+    }
+    if ray_len > fr {
+        frees.add(at(ray_len - fr), inv_ds);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn params(max_range_m: f64, mode: RangeMode) -> MapParams {
+        MapParams { max_range_m, range_mode: mode, ..Default::default() }
+    }
+
+    #[test]
+    fn free_samples_follow_la3dm_spacing() {
+        // One hit at 2.01 m along x: samples at 0.5, 1.0, 1.5, 2.0 and the extra one at 1.51.
+        let mut b = TrainingBuilder::default();
+        let p = MapParams { ds_resolution_m: 0.001, origin_as_free: false, ..params(0.0, RangeMode::Drop) };
+        let t = b.build(&[[2.01, 0.0, 0.0]], [0.0, 0.0, 0.0], &p);
+        assert_eq!(t.hits.len(), 1);
+        let mut xs: Vec<f64> = t.frees.iter().map(|f| f[0]).collect();
+        xs.sort_by(f64::total_cmp);
+        let want = [0.5, 1.0, 1.5, 1.51, 2.0];
+        assert_eq!(xs.len(), want.len());
+        for (x, w) in xs.iter().zip(want) {
+            assert!((x - w).abs() < 1e-6, "{xs:?}");
+        }
+    }
+
+    #[test]
+    fn range_modes() {
+        let mut b = TrainingBuilder::default();
+        let pts = [[10.0f32, 0.05, 0.05]];
+        let drop = b.build(&pts, [0.05, 0.05, 0.05], &params(8.0, RangeMode::Drop));
+        assert!(drop.hits.is_empty());
+        assert_eq!(drop.frees.len(), 1, "only the origin");
+        let trunc = b.build(&pts, [0.05, 0.05, 0.05], &params(8.0, RangeMode::Truncate));
+        assert!(trunc.hits.is_empty());
+        assert_eq!(trunc.beyond_range, 1);
+        let max_x = trunc.frees.iter().map(|f| f[0]).fold(f64::MIN, f64::max);
+        assert!(max_x < 8.05 && max_x > 7.5, "free samples stop short of max range: {max_x}");
+    }
+
+    #[test]
+    fn non_finite_points_are_dropped_and_counted() {
+        let mut b = TrainingBuilder::default();
+        let t = b.build(&[[f32::NAN, 0.0, 0.0], [1.0, f32::INFINITY, 0.0], [1.0, 1.0, 1.0]], [0.0; 3], &MapParams::default());
+        assert_eq!(t.dropped_points, 2);
+        assert_eq!(t.hits.len(), 1);
+    }
+
+    #[test]
+    fn hits_are_voxel_centroids() {
+        let mut b = TrainingBuilder::default();
+        let t = b.build(&[[1.01, 1.01, 1.01], [1.03, 1.05, 1.07], [1.21, 1.0, 1.0]], [0.0; 3], &MapParams::default());
+        assert_eq!(t.hits.len(), 2);
+        assert!((t.hits[0][0] - 1.02).abs() < 1e-6 && (t.hits[0][2] - 1.04).abs() < 1e-6);
+    }
+}
