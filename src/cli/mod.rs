@@ -1,5 +1,60 @@
-//! The `bgkmap` command line (being written).
+//! The `bgkmap` command line: offline tools over map files (build, merge, export, eval, bench,
+//! simulate) and the demo. Each subcommand is a thin layer over the library; errors are
+//! reported once, here, with exit code 1 (2 for usage errors, from clap).
+
+mod args;
+mod bench;
+mod build;
+mod demo;
+mod eval_cmd;
+mod export;
 pub mod plot;
-pub fn main() -> std::process::ExitCode {
-    std::process::ExitCode::SUCCESS
+
+use clap::{Parser, Subcommand};
+use std::process::ExitCode;
+
+#[derive(Debug, Parser)]
+#[command(name = "bgkmap", version, about = "Exact BGK occupancy maps: build, merge, export, evaluate, benchmark")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Integrate PCD scans, in the order given, into a new map file.
+    Build(build::BuildArgs),
+    /// Sum the evidence of several map files (exact; parameters must match).
+    Merge(build::MergeArgs),
+    /// Write a map's cells as CSV, OctoMap .bt or PLY.
+    Export(export::ExportArgs),
+    /// ROC / AUC of a map against a ground-truth OctoMap .bt.
+    Eval(eval_cmd::EvalArgs),
+    /// Benchmarks (integration time only; no file I/O in the timed part).
+    #[command(subcommand)]
+    Bench(bench::BenchCommand),
+    /// Write simulated LiDAR scans (PCD with VIEWPOINT) and the analytic ground truth (.bt).
+    Simulate(demo::SimulateArgs),
+    /// Simulate a robot in the built-in scene, build its map and evaluate it.
+    Demo(demo::DemoArgs),
+}
+
+pub fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Build(a) => build::run_build(a),
+        Command::Merge(a) => build::run_merge(a),
+        Command::Export(a) => export::run(a),
+        Command::Eval(a) => eval_cmd::run(a),
+        Command::Bench(b) => bench::run(b),
+        Command::Simulate(a) => demo::run_simulate(a),
+        Command::Demo(a) => demo::run_demo(a),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
 }

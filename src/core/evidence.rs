@@ -141,11 +141,17 @@ impl Accumulator {
     }
 
     #[inline(always)]
-    fn cell_mut(&mut self, x: i32, y: i32, z: i32) -> (&mut i64, &mut i64) {
+    fn grid_index(&self, x: i32, y: i32, z: i32) -> usize {
         let bx = i64::from((x >> BLOCK_SHIFT) - self.min_block[0]);
         let by = i64::from((y >> BLOCK_SHIFT) - self.min_block[1]);
         let bz = i64::from((z >> BLOCK_SHIFT) - self.min_block[2]);
-        let s = (bx + self.dims[0] * (by + self.dims[1] * bz)) as usize;
+        (bx + self.dims[0] * (by + self.dims[1] * bz)) as usize
+    }
+
+    /// The slot of the block holding cell (x, y, z), allocating a zeroed block on first use.
+    #[inline(always)]
+    fn slot_of(&mut self, x: i32, y: i32, z: i32) -> usize {
+        let s = self.grid_index(x, y, z);
         let mut slot = self.slots[s];
         if slot == NO_SLOT {
             slot = self.blocks.len() as u32;
@@ -154,9 +160,13 @@ impl Accumulator {
             let block = self.spare.pop().unwrap_or_else(BlockEvidence::zeroed);
             self.blocks.push((key, block));
         }
-        let i = CellKey::new(x, y, z).index_in_block();
-        let blk = &mut self.blocks[slot as usize].1;
-        (&mut blk.a[i], &mut blk.b[i])
+        slot as usize
+    }
+
+    /// A view of one (y, z) row of cells, caching its block slots.
+    #[inline(always)]
+    fn row_mut(&mut self, y: i32, z: i32) -> Row<'_> {
+        Row { acc: self, y, z, cached_bx: i32::MIN, cached_slot: 0 }
     }
 
     /// Returns a delta's blocks for reuse (they are zeroed here, off the hot path's allocator).
@@ -166,6 +176,29 @@ impl Accumulator {
             b.b.fill(0);
             self.spare.push(b);
         }
+    }
+}
+
+/// One row of cells along x; consecutive x mostly stay in one block, so the slot is cached.
+struct Row<'a> {
+    acc: &'a mut Accumulator,
+    y: i32,
+    z: i32,
+    cached_bx: i32,
+    cached_slot: usize,
+}
+
+impl Row<'_> {
+    #[inline(always)]
+    fn cell_mut(&mut self, x: i32) -> (&mut i64, &mut i64) {
+        let bx = x >> BLOCK_SHIFT;
+        if bx != self.cached_bx {
+            self.cached_bx = bx;
+            self.cached_slot = self.acc.slot_of(x, self.y, self.z);
+        }
+        let i = CellKey::new(x, self.y, self.z).index_in_block();
+        let blk = &mut self.acc.blocks[self.cached_slot].1;
+        (&mut blk.a[i], &mut blk.b[i])
     }
 }
 
@@ -242,23 +275,49 @@ fn support_bounds(pts: &[([f64; 3], bool)], ell_cells: f64) -> ([i64; 3], [i64; 
     (lo, hi)
 }
 
+/// Floor without a libm call (baseline x86-64 has no SSE4.1 `roundsd`); exact for |v| < 2^52.
+#[inline(always)]
+fn floor_i32(v: f64) -> i32 {
+    let i = v as i64;
+    (if (i as f64) > v { i - 1 } else { i }) as i32
+}
+
+#[inline(always)]
+fn ceil_i32(v: f64) -> i32 {
+    let i = v as i64;
+    (if (i as f64) < v { i + 1 } else { i }) as i32
+}
+
+/// Slack (cells) on the candidate range so rounding in the square root never loses a cell; the
+/// exact membership test is `t < 1` inside [`KernelTable::quantized`].
+const RANGE_SLACK: f64 = 1e-6;
+
 #[inline(always)]
 fn scatter_point(acc: &mut Accumulator, p: [f64; 3], hit: bool, geo: &PairGeometry, table: &KernelTable) {
-    // Candidate keys k with |k + ½ − p| < ell; the exact test is on t below.
-    let lo = |v: f64| (v - geo.ell_cells - 0.5).ceil() as i32;
-    let hi = |v: f64| (v + geo.ell_cells - 0.5).floor() as i32;
-    let (x0, x1) = (lo(p[0]), hi(p[0]));
-    for z in lo(p[2])..=hi(p[2]) {
-        for y in lo(p[1])..=hi(p[1]) {
-            for x in x0..=x1 {
+    let l = geo.ell_cells + RANGE_SLACK;
+    let l2 = l * l;
+    // Cell centres sit at k + ½: candidates satisfy |k + ½ − p| < l on each axis.
+    let (cz, cy, cx) = (p[2] - 0.5, p[1] - 0.5, p[0] - 0.5);
+    for z in ceil_i32(cz - l)..=floor_i32(cz + l) {
+        let dz = f64::from(z) + 0.5 - p[2];
+        let rz = l2 - dz * dz;
+        if rz < 0.0 {
+            continue;
+        }
+        let hy = rz.sqrt();
+        for y in ceil_i32(cy - hy)..=floor_i32(cy + hy) {
+            let dy = f64::from(y) + 0.5 - p[1];
+            let ry = rz - dy * dy;
+            if ry < 0.0 {
+                continue;
+            }
+            let hx = ry.sqrt();
+            let mut row = acc.row_mut(y, z);
+            for x in ceil_i32(cx - hx)..=floor_i32(cx + hx) {
                 let q = table.quantized(pair_t(p, CellKey::new(x, y, z), geo.inv_ell2_cells));
                 if q != 0 {
-                    let (a, b) = acc.cell_mut(x, y, z);
-                    if hit {
-                        *a += q;
-                    } else {
-                        *b += q;
-                    }
+                    let (a, b) = row.cell_mut(x);
+                    *if hit { a } else { b } += q;
                 }
             }
         }

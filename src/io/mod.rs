@@ -7,3 +7,4 @@ pub mod lzf;
 pub mod octomap;
 pub mod pcd;
 pub mod ply;
+pub mod scan;

@@ -129,11 +129,12 @@ fn rect_item(x0: f64, y0: f64, w: f64, d: f64, h: f64) -> Item {
     }
 }
 
-/// A crate with a smaller crate of height `h2` on top, inset by `inset` = (x, y) from the
-/// bottom crate's lower corner.
-fn stacked_crates(x0: f64, y0: f64, w: f64, d: f64, h: f64, top: [f64; 2], inset: [f64; 2], h2: f64) -> Item {
+/// A crate of `size` (w, d, h) with a smaller crate of `top` (w, d, h) on it, inset by `inset`
+/// = (x, y) from the bottom crate's lower corner.
+fn stacked_crates(x0: f64, y0: f64, size: [f64; 3], top: [f64; 3], inset: [f64; 2]) -> Item {
+    let [w, d, h] = size;
     let mut item = rect_item(x0, y0, w, d, h);
-    item.solids.push(block(x0 + inset[0], y0 + inset[1], top[0], top[1], h, h + h2));
+    item.solids.push(block(x0 + inset[0], y0 + inset[1], top[0], top[1], h, h + top[2]));
     item
 }
 
@@ -168,7 +169,7 @@ fn ball(centre: [f64; 2], radius: f64) -> Item {
 fn default_furniture() -> Vec<Item> {
     let ceiling = ROOM_SIZE_M[2];
     vec![
-        stacked_crates(0.3, 0.3, 0.8, 0.7, 0.8, [0.5, 0.5], [0.1, 0.1], 0.4),
+        stacked_crates(0.3, 0.3, [0.8, 0.7, 0.8], [0.5, 0.5, 0.4], [0.1, 0.1]),
         table(3.5, 3.0, 2.0, 1.0, 0.76),
         cylinder([9.3, 3.5], 0.25, 0.0, ceiling),
         cylinder([6.5, 0.7], 0.35, 0.0, 0.9),
@@ -221,7 +222,8 @@ fn draw_item(kind: Kind, rng: &mut impl Rng) -> Item {
             let (w, d, h) = (uniform(rng, 0.5, 1.0), uniform(rng, 0.5, 1.0), uniform(rng, 0.4, 0.9));
             let top = [w * uniform(rng, 0.5, 0.8), d * uniform(rng, 0.5, 0.8)];
             let inset = [uniform(rng, 0.0, w - top[0]), uniform(rng, 0.0, d - top[1])];
-            stacked_crates(0.0, 0.0, w, d, h, top, inset, uniform(rng, 0.3, 0.5))
+            let h2 = uniform(rng, 0.3, 0.5);
+            stacked_crates(0.0, 0.0, [w, d, h], [top[0], top[1], h2], inset)
         }
         Kind::Table => {
             let (w, d, h) = (uniform(rng, 1.2, 2.0), uniform(rng, 0.7, 1.0), uniform(rng, 0.7, 0.8));

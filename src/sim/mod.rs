@@ -98,24 +98,3 @@ mod tests {
 
     const GOLDEN_FNV1A: u64 = 0x96ee_f8fd_9127_d7bf;
 }
-#[cfg(test)]
-mod tmp_timing {
-    #[test]
-    #[ignore]
-    fn tmp_timing() {
-        use super::*;
-        let lidar = Lidar::default();
-        let scene = Scene::room(0);
-        let mut rng = ChaCha8Rng::seed_from_u64(0);
-        let t = std::time::Instant::now();
-        let mut n = 0;
-        for _ in 0..100 { n += lidar.scan(&scene, [5.0, 2.0, SENSOR_HEIGHT_M], 0.0, &mut rng).points_world.len(); }
-        eprintln!("scan: {:?} per scan ({n})", t.elapsed() / 100);
-        let t = std::time::Instant::now();
-        let c = scene.truth_cells(0.1);
-        eprintln!("truth 0.1: {:?} ({} cells, {} occ)", t.elapsed(), c.len(), c.iter().filter(|c| c.1).count());
-        let t = std::time::Instant::now();
-        let c = scene.truth_cells(0.05);
-        eprintln!("truth 0.05: {:?} ({} cells)", t.elapsed(), c.len());
-    }
-}

@@ -161,7 +161,7 @@ pub(crate) fn intersect(a: (f64, f64), b: (f64, f64)) -> Option<(f64, f64)> {
 /// the cancellation-free form of the quadratic formula.
 fn quadratic_interval(a: f64, hb: f64, c: f64) -> Option<(f64, f64)> {
     let disc = hb * hb - a * c;
-    if !(disc >= 0.0) {
+    if disc.is_nan() || disc < 0.0 {
         return None;
     }
     let s = disc.sqrt();

@@ -45,7 +45,7 @@ impl Scene {
                 let grid_last = (lo[i] + dims[i] as i64 - 1) as f64;
                 let first = ((bmin[i] / res).floor() - 1.0).max(grid_first);
                 let last = ((bmax[i] / res).floor() + 1.0).min(grid_last);
-                if !(first <= last) {
+                if first.is_nan() || last.is_nan() || first > last {
                     empty = true;
                     break;
                 }

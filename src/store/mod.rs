@@ -45,7 +45,6 @@
 //! leaves a half-written map. (The scan journal and in-place incremental updates of a later
 //! format version add tables; readers of version 1 refuse those files by version.)
 
-use crate::core::evidence::BlockEvidence;
 use crate::core::key::{BLOCK_CELLS, BLOCK_EDGE, BlockKey};
 use crate::core::kernel::FIXED_SHIFT;
 use crate::core::{EvidenceMap, MapParams};

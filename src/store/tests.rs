@@ -1,4 +1,5 @@
 use super::*;
+use crate::core::evidence::BlockEvidence;
 use crate::core::Integrator;
 
 fn small_map() -> EvidenceMap {

@@ -1,0 +1,111 @@
+//! `bgkmap bench`: measured figures (never timed tests).
+
+use super::args::{ScanArgs, load_scan};
+use crate::core::{EvidenceMap, Integrator, MapParams};
+use crate::io::scan::Scan;
+use crate::sim::{Lidar, simulate};
+use anyhow::Result;
+use clap::{Args, Subcommand};
+use std::path::PathBuf;
+use std::time::Instant;
+
+#[derive(Debug, Subcommand)]
+pub enum BenchCommand {
+    /// Scan integration (training data + evidence + map update); files are loaded before timing.
+    Ingest(IngestArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct IngestArgs {
+    /// PCD scans (default: 12 scans of the built-in simulated room).
+    pub scans: Vec<PathBuf>,
+    /// Timed passes over all scans (after one untimed warm-up pass), each into a fresh map.
+    #[arg(long, default_value_t = 5)]
+    pub repeat: usize,
+    /// Threads per scan.
+    #[arg(long, default_value_t = 1)]
+    pub threads: usize,
+    /// Maximum range (m); 0 = unlimited.
+    #[arg(long, default_value_t = 8.0)]
+    pub max_range: f64,
+    /// Print one JSON object.
+    #[arg(long)]
+    pub json: bool,
+    #[command(flatten)]
+    pub scan: ScanArgs,
+}
+
+pub fn run(cmd: BenchCommand) -> Result<()> {
+    match cmd {
+        BenchCommand::Ingest(a) => ingest(a),
+    }
+}
+
+fn ingest(a: IngestArgs) -> Result<()> {
+    let (scans, source) = if a.scans.is_empty() {
+        let (_, sim) = simulate(0, 12, &Lidar::default());
+        let scans = sim
+            .into_iter()
+            .map(|s| Scan { points_world: s.points_world, origin_world: s.origin, dropped_nonfinite: 0 })
+            .collect::<Vec<_>>();
+        (scans, "simulated room (seed 0, 12 scans, 16-beam lidar)".to_string())
+    } else {
+        let scans = a.scans.iter().map(|p| load_scan(p, &a.scan)).collect::<Result<Vec<_>>>()?;
+        (scans, format!("{} PCD files", a.scans.len()))
+    };
+    let params = MapParams { max_range_m: a.max_range, ..Default::default() };
+    params.validate()?;
+    let threads = a.threads.max(1);
+    let mut integrator = Integrator::new(params);
+    let mut per_scan_ms = Vec::new();
+    let mut totals_ms = Vec::new();
+    for pass in 0..=a.repeat.max(1) {
+        let mut map = EvidenceMap::new(params);
+        let mut total = 0.0;
+        for s in &scans {
+            let t0 = Instant::now();
+            integrator.integrate(&mut map, &s.points_world, s.origin_world, threads);
+            let ms = t0.elapsed().as_secs_f64() * 1e3;
+            total += ms;
+            if pass > 0 {
+                per_scan_ms.push(ms);
+            }
+        }
+        if pass > 0 {
+            totals_ms.push(total);
+        }
+    }
+    let points: usize = scans.iter().map(|s| s.points_world.len()).sum();
+    let med = percentile(&mut per_scan_ms, 0.5);
+    let p90 = percentile(&mut per_scan_ms, 0.9);
+    let total_med = percentile(&mut totals_ms, 0.5);
+    let points_per_s = points as f64 / (total_med / 1e3);
+    if a.json {
+        let v = serde_json::json!({
+            "bench": "ingest", "source": source, "scans": scans.len(), "repeat": a.repeat.max(1),
+            "threads": threads, "max_range": a.max_range,
+            "per_scan_ms_median": med, "per_scan_ms_p90": p90, "total_ms_median": total_med,
+            "raw_points": points, "points_per_s": points_per_s,
+        });
+        println!("{v}");
+    } else {
+        println!(
+            "ingest {source}: {} scans × {} passes, {threads} thread(s): per scan median {med:.3} ms, p90 {p90:.3} ms; \
+             all scans median {total_med:.2} ms ({:.2} M raw points/s)",
+            scans.len(),
+            a.repeat.max(1),
+            points_per_s / 1e6
+        );
+    }
+    Ok(())
+}
+
+/// Nearest-rank percentile (sorts in place); NaN for an empty sample.
+fn percentile(v: &mut [f64], q: f64) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(f64::total_cmp);
+    let rank = ((q * v.len() as f64).ceil() as usize).clamp(1, v.len());
+    v[rank - 1]
+}
