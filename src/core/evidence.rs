@@ -9,8 +9,8 @@
 //! adds into a dense per-scan block accumulator (a slot grid over the scan's block bounding box,
 //! no hashing per cell). [`brute_force_cell`] is the gather-side reference used by tests.
 
-use super::kernel::KernelTable;
-use super::key::{BLOCK_CELLS, BLOCK_SHIFT, BlockKey, CellKey};
+use super::kernel::{COORD_SHIFT, KernelTable, TABLE_INTERVALS};
+use super::key::{BLOCK_CELLS, BlockKey, CellKey};
 use super::training::TrainingSet;
 
 /// Evidence of one block: occupied mass `a` and free mass `b` per cell (fixed-point, unit kernel).
@@ -83,14 +83,34 @@ pub fn to_cell_units(p_m: [f64; 3], res_m: f64) -> [f64; 3] {
     [p_m[0] / res_m, p_m[1] / res_m, p_m[2] / res_m]
 }
 
-/// `t = (d/ell)²` for a training point (cell units) and a cell: the one definition of a pair's
-/// distance, shared by the fast path and the reference.
+/// Floor to i32 without a libm call (baseline x86-64 has no SSE4.1 `roundsd`); exact for the
+/// key range (|v| < 2^31).
 #[inline(always)]
-pub fn pair_t(p_cells: [f64; 3], cell: CellKey, inv_ell2_cells: f64) -> f64 {
-    let dz = f64::from(cell.z) + 0.5 - p_cells[2];
-    let dy = f64::from(cell.y) + 0.5 - p_cells[1];
-    let dx = f64::from(cell.x) + 0.5 - p_cells[0];
-    ((dz * dz + dy * dy) + dx * dx) * inv_ell2_cells
+pub fn floor_i32(v: f64) -> i32 {
+    let i = v as i32;
+    if f64::from(i) > v { i - 1 } else { i }
+}
+
+/// A training point (cell units) split into its cell and its offset from that cell's centre:
+/// `p = cell + ½ + offset`, offset in [−½, ½).
+#[inline(always)]
+pub fn split_point(p_cells: [f64; 3]) -> ([i32; 3], [f64; 3]) {
+    let c = p_cells.map(floor_i32);
+    (c, [0, 1, 2].map(|i| (p_cells[i] - f64::from(c[i])) - 0.5))
+}
+
+/// The kernel-table coordinate of a training point (cell units) and a cell: the one definition
+/// of a pair's distance, shared by the fast path and the reference. Per axis the distance is
+/// `(k − c) − offset` with `(c, offset)` from [`split_point`]; squares are summed z, y, then x,
+/// and the sum goes through [`KernelTable::coordinate`].
+#[inline(always)]
+pub fn pair_coord(p_cells: [f64; 3], cell: CellKey, scale: f64) -> i64 {
+    let (c, f) = split_point(p_cells);
+    let d2 = |k: i32, i: usize| {
+        let d = (i64::from(k) - i64::from(c[i])) as f64 - f[i];
+        d * d
+    };
+    KernelTable::coordinate((d2(cell.z, 2) + d2(cell.y, 1)) + d2(cell.x, 0), scale)
 }
 
 /// Geometry shared by the scatter and the reference: resolution and kernel length in cells.
@@ -98,231 +118,32 @@ pub fn pair_t(p_cells: [f64; 3], cell: CellKey, inv_ell2_cells: f64) -> f64 {
 pub struct PairGeometry {
     pub res_m: f64,
     pub ell_cells: f64,
-    pub inv_ell2_cells: f64,
+    /// `N·2^COORD_SHIFT / ell_cells²`: turns a squared distance (cells²) into a fixed-point
+    /// kernel-table coordinate.
+    pub scale: f64,
 }
 
 impl PairGeometry {
     pub fn new(res_m: f64, ell_m: f64) -> Self {
         let ell_cells = ell_m / res_m;
-        Self { res_m, ell_cells, inv_ell2_cells: 1.0 / (ell_cells * ell_cells) }
+        Self { res_m, ell_cells, scale: TABLE_INTERVALS as f64 * f64::from(1u32 << COORD_SHIFT) / (ell_cells * ell_cells) }
+    }
+
+    /// Stencil radius: cells within `ell` of a point differ from its cell by at most this.
+    pub fn radius_cells(&self) -> i32 {
+        floor_i32(self.ell_cells + 0.5)
     }
 }
 
 /// Reference: the evidence of one cell by summing over *all* training points (gather, O(N)).
 pub fn brute_force_cell(set: &TrainingSet, cell: CellKey, geo: &PairGeometry, table: &KernelTable) -> (i64, i64) {
     let sum = |pts: &[[f64; 3]]| -> i64 {
-        pts.iter().map(|&p| table.quantized(pair_t(to_cell_units(p, geo.res_m), cell, geo.inv_ell2_cells))).sum()
+        pts.iter().map(|&p| table.quantized_coord(pair_coord(to_cell_units(p, geo.res_m), cell, geo.scale))).sum()
     };
     (sum(&set.hits), sum(&set.frees))
 }
 
-/// Dense accumulator over the block bounding box of one scan's support.
-#[derive(Debug, Default)]
-pub struct Accumulator {
-    min_block: [i32; 3],
-    dims: [i64; 3],
-    slots: Vec<u32>,
-    blocks: Vec<(BlockKey, Box<BlockEvidence>)>,
-    spare: Vec<Box<BlockEvidence>>,
-}
-
-const NO_SLOT: u32 = u32::MAX;
-/// Above this many block slots the bounding box is split (points are processed in tiles).
-const MAX_SLOTS: i64 = 1 << 22;
-
-impl Accumulator {
-    /// Prepares for points whose support lies within cell keys `lo..=hi`.
-    fn reset(&mut self, lo: [i64; 3], hi: [i64; 3]) {
-        let b = |v: i64| (v >> BLOCK_SHIFT) as i32;
-        self.min_block = [b(lo[0]), b(lo[1]), b(lo[2])];
-        self.dims = [0, 1, 2].map(|i| i64::from(b(hi[i]) - self.min_block[i]) + 1);
-        self.slots.clear();
-        self.slots.resize((self.dims[0] * self.dims[1] * self.dims[2]) as usize, NO_SLOT);
-    }
-
-    #[inline(always)]
-    fn grid_index(&self, x: i32, y: i32, z: i32) -> usize {
-        let bx = i64::from((x >> BLOCK_SHIFT) - self.min_block[0]);
-        let by = i64::from((y >> BLOCK_SHIFT) - self.min_block[1]);
-        let bz = i64::from((z >> BLOCK_SHIFT) - self.min_block[2]);
-        (bx + self.dims[0] * (by + self.dims[1] * bz)) as usize
-    }
-
-    /// The slot of the block holding cell (x, y, z), allocating a zeroed block on first use.
-    #[inline(always)]
-    fn slot_of(&mut self, x: i32, y: i32, z: i32) -> usize {
-        let s = self.grid_index(x, y, z);
-        let mut slot = self.slots[s];
-        if slot == NO_SLOT {
-            slot = self.blocks.len() as u32;
-            self.slots[s] = slot;
-            let key = BlockKey::new(x >> BLOCK_SHIFT, y >> BLOCK_SHIFT, z >> BLOCK_SHIFT);
-            let block = self.spare.pop().unwrap_or_else(BlockEvidence::zeroed);
-            self.blocks.push((key, block));
-        }
-        slot as usize
-    }
-
-    /// A view of one (y, z) row of cells, caching its block slots.
-    #[inline(always)]
-    fn row_mut(&mut self, y: i32, z: i32) -> Row<'_> {
-        Row { acc: self, y, z, cached_bx: i32::MIN, cached_slot: 0 }
-    }
-
-    /// Returns a delta's blocks for reuse (they are zeroed here, off the hot path's allocator).
-    pub fn recycle(&mut self, delta: ScanDelta) {
-        for (_, mut b) in delta.blocks {
-            b.a.fill(0);
-            b.b.fill(0);
-            self.spare.push(b);
-        }
-    }
-}
-
-/// One row of cells along x; consecutive x mostly stay in one block, so the slot is cached.
-struct Row<'a> {
-    acc: &'a mut Accumulator,
-    y: i32,
-    z: i32,
-    cached_bx: i32,
-    cached_slot: usize,
-}
-
-impl Row<'_> {
-    #[inline(always)]
-    fn cell_mut(&mut self, x: i32) -> (&mut i64, &mut i64) {
-        let bx = x >> BLOCK_SHIFT;
-        if bx != self.cached_bx {
-            self.cached_bx = bx;
-            self.cached_slot = self.acc.slot_of(x, self.y, self.z);
-        }
-        let i = CellKey::new(x, self.y, self.z).index_in_block();
-        let blk = &mut self.acc.blocks[self.cached_slot].1;
-        (&mut blk.a[i], &mut blk.b[i])
-    }
-}
-
-/// Scatters a training set into a [`ScanDelta`]. Reusable across scans.
-#[derive(Debug, Default)]
-pub struct Scatter {
-    acc: Accumulator,
-    cells: Vec<([f64; 3], bool)>,
-}
-
-impl Scatter {
-    /// The exact evidence of `set`: for every cell within `ell` of a training point, the sum of
-    /// quantised kernel values over all training points within `ell`.
-    pub fn delta(&mut self, set: &TrainingSet, geo: &PairGeometry, table: &KernelTable) -> ScanDelta {
-        self.cells.clear();
-        self.cells.extend(set.hits.iter().map(|&p| (to_cell_units(p, geo.res_m), true)));
-        self.cells.extend(set.frees.iter().map(|&p| (to_cell_units(p, geo.res_m), false)));
-        let pts = std::mem::take(&mut self.cells);
-        let out = self.delta_of(&pts, geo, table);
-        self.cells = pts;
-        out
-    }
-
-    /// As [`Scatter::delta`] for points already in cell units, labelled (true = hit).
-    pub fn delta_of(&mut self, pts: &[([f64; 3], bool)], geo: &PairGeometry, table: &KernelTable) -> ScanDelta {
-        let mut parts = Vec::new();
-        for tile in tiles(pts, geo.ell_cells) {
-            let (lo, hi) = support_bounds(tile, geo.ell_cells);
-            self.acc.reset(lo, hi);
-            for &(p, hit) in tile {
-                scatter_point(&mut self.acc, p, hit, geo, table);
-            }
-            let mut blocks = std::mem::take(&mut self.acc.blocks);
-            blocks.sort_unstable_by_key(|(k, _)| *k);
-            parts.push(ScanDelta { blocks });
-        }
-        if parts.len() == 1 { parts.pop().unwrap_or_default() } else { ScanDelta::sum(parts) }
-    }
-
-    pub fn recycle(&mut self, delta: ScanDelta) {
-        self.acc.recycle(delta);
-    }
-}
-
-/// Splits points into runs whose support box has at most `MAX_SLOTS` blocks (a scan with a far
-/// outlier would otherwise need a huge slot grid). Most scans are one tile.
-fn tiles(pts: &[([f64; 3], bool)], ell_cells: f64) -> Vec<&[([f64; 3], bool)]> {
-    let mut out = Vec::new();
-    let mut rest = pts;
-    while !rest.is_empty() {
-        let mut n = rest.len();
-        while n > 1 && slot_count(support_bounds(&rest[..n], ell_cells)) > MAX_SLOTS {
-            n = n.div_ceil(2);
-        }
-        out.push(&rest[..n]);
-        rest = &rest[n..];
-    }
-    out
-}
-
-fn slot_count((lo, hi): ([i64; 3], [i64; 3])) -> i64 {
-    (0..3).map(|i| (hi[i] >> BLOCK_SHIFT) - (lo[i] >> BLOCK_SHIFT) + 1).product()
-}
-
-fn support_bounds(pts: &[([f64; 3], bool)], ell_cells: f64) -> ([i64; 3], [i64; 3]) {
-    let mut lo = [i64::MAX; 3];
-    let mut hi = [i64::MIN; 3];
-    for (p, _) in pts {
-        for i in 0..3 {
-            lo[i] = lo[i].min((p[i] - ell_cells - 0.5).floor() as i64);
-            hi[i] = hi[i].max((p[i] + ell_cells - 0.5).ceil() as i64);
-        }
-    }
-    (lo, hi)
-}
-
-/// Floor without a libm call (baseline x86-64 has no SSE4.1 `roundsd`); exact for |v| < 2^52.
-#[inline(always)]
-fn floor_i32(v: f64) -> i32 {
-    let i = v as i64;
-    (if (i as f64) > v { i - 1 } else { i }) as i32
-}
-
-#[inline(always)]
-fn ceil_i32(v: f64) -> i32 {
-    let i = v as i64;
-    (if (i as f64) < v { i + 1 } else { i }) as i32
-}
-
-/// Slack (cells) on the candidate range so rounding in the square root never loses a cell; the
-/// exact membership test is `t < 1` inside [`KernelTable::quantized`].
-const RANGE_SLACK: f64 = 1e-6;
-
-#[inline(always)]
-fn scatter_point(acc: &mut Accumulator, p: [f64; 3], hit: bool, geo: &PairGeometry, table: &KernelTable) {
-    let l = geo.ell_cells + RANGE_SLACK;
-    let l2 = l * l;
-    // Cell centres sit at k + ½: candidates satisfy |k + ½ − p| < l on each axis.
-    let (cz, cy, cx) = (p[2] - 0.5, p[1] - 0.5, p[0] - 0.5);
-    for z in ceil_i32(cz - l)..=floor_i32(cz + l) {
-        let dz = f64::from(z) + 0.5 - p[2];
-        let rz = l2 - dz * dz;
-        if rz < 0.0 {
-            continue;
-        }
-        let hy = rz.sqrt();
-        for y in ceil_i32(cy - hy)..=floor_i32(cy + hy) {
-            let dy = f64::from(y) + 0.5 - p[1];
-            let ry = rz - dy * dy;
-            if ry < 0.0 {
-                continue;
-            }
-            let hx = ry.sqrt();
-            let mut row = acc.row_mut(y, z);
-            for x in ceil_i32(cx - hx)..=floor_i32(cx + hx) {
-                let q = table.quantized(pair_t(p, CellKey::new(x, y, z), geo.inv_ell2_cells));
-                if q != 0 {
-                    let (a, b) = row.cell_mut(x);
-                    *if hit { a } else { b } += q;
-                }
-            }
-        }
-    }
-}
+pub use super::scatter::Scatter;
 
 #[cfg(test)]
 mod tests {

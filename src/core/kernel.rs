@@ -16,8 +16,6 @@ pub const FIXED_SHIFT: u32 = 24;
 /// `2^FIXED_SHIFT` as f64: one unit of kernel mass.
 pub const FIXED_ONE: f64 = (1u64 << FIXED_SHIFT) as f64;
 
-const TABLE_INTERVALS: usize = 4096;
-
 /// The unit sparse kernel (σ0 = 1) at distance `d_m` for kernel length `ell_m`, in f64 with an
 /// explicit cut-off (la3dm clamps an f32 evaluation instead).
 pub fn unit_kernel(d_m: f64, ell_m: f64) -> f64 {
@@ -38,11 +36,28 @@ fn unit_kernel_of_u(u: f64) -> f64 {
     (2.0 + libm::cos(two_pi * u)) / 3.0 * (1.0 - u) + libm::sin(two_pi * u) / two_pi
 }
 
-/// The unit kernel as a function of `t = (d/l)²`, tabulated for the fixed-point evidence path.
+/// Intervals of the kernel table over `t ∈ [0, 1)`.
+pub const TABLE_INTERVALS: usize = 4096;
+/// Fractional bits of a table coordinate: a pair's `x = N·(d/l)²` is rounded once to a
+/// fixed-point integer with this many fractional bits; everything after is integer arithmetic.
+pub const COORD_SHIFT: u32 = 16;
+/// `1.5·2^52`: adding it rounds an f64 of magnitude < 2^51 to an integer (ties to even) in the
+/// low mantissa bits — a branch-free, platform-independent rounding.
+const ROUND_MAGIC: f64 = 6_755_399_441_055_744.0;
+
+/// Rounds `v` (|v| < 2^51) to the nearest integer, ties to even.
+#[inline(always)]
+pub fn round_to_i64(v: f64) -> i64 {
+    (v + ROUND_MAGIC).to_bits() as i64 - ROUND_MAGIC.to_bits() as i64
+}
+
+/// The unit kernel as a function of `x = N·(d/l)²`, tabulated for the fixed-point evidence path.
 #[derive(Debug, Clone)]
 pub struct KernelTable {
-    /// `k̃(√(j/N))·2^F` for j = 0..=N; the last entry is 0 (the cut-off).
-    values: Vec<f64>,
+    /// `[k̃(√(j/N))·2^F rounded, slope to the next entry]` for j = 0..N, as i32 (32 KiB, so it
+    /// stays in L1); entries from N on are zero (the cut-off), so clamping to N gives 0 for every
+    /// pair at or beyond `l`.
+    entries: Box<[[i32; 2]; TABLE_INTERVALS + 2]>,
 }
 
 impl Default for KernelTable {
@@ -54,26 +69,38 @@ impl Default for KernelTable {
 impl KernelTable {
     pub fn new() -> Self {
         let n = TABLE_INTERVALS;
-        let values = (0..=n)
-            .map(|j| if j == n { 0.0 } else { unit_kernel_of_u(libm::sqrt(j as f64 / n as f64)) * FIXED_ONE })
-            .collect();
-        Self { values }
+        let value = |j: usize| {
+            if j < n { round_to_i64(unit_kernel_of_u(libm::sqrt(j as f64 / n as f64)) * FIXED_ONE) as i32 } else { 0 }
+        };
+        let mut entries = Box::new([[0i32; 2]; TABLE_INTERVALS + 2]);
+        for (j, e) in entries.iter_mut().enumerate().take(n) {
+            *e = [value(j), value(j + 1) - value(j)];
+        }
+        Self { entries }
     }
 
-    /// Fixed-point unit-kernel mass for a pair with `t = (d/l)² `; 0 when `t ≥ 1`.
-    /// This is *the* definition of a pair's evidence: the fast path and every reference
-    /// implementation call it.
+    /// The fixed-point table coordinate of a pair: `round(x·2^COORD_SHIFT)` for
+    /// `x = N·(d/l)²`, computed as `round(d2 · scale)` with `scale = N·2^COORD_SHIFT / l²`.
     #[inline(always)]
+    pub fn coordinate(d2_cells: f64, scale: f64) -> i64 {
+        round_to_i64(d2_cells * scale)
+    }
+
+    /// Fixed-point unit-kernel mass for a pair at table coordinate `xq` (see
+    /// [`Self::coordinate`]); 0 at or beyond the cut-off. This is *the* definition of a pair's
+    /// evidence: the fast path and every reference implementation call it.
+    #[inline(always)]
+    pub fn quantized_coord(&self, xq: i64) -> i64 {
+        let xq = xq.min((TABLE_INTERVALS as i64) << COORD_SHIFT);
+        let j = (xq >> COORD_SHIFT) as usize;
+        let frac = xq & ((1 << COORD_SHIFT) - 1);
+        let [v, slope] = self.entries[j.min(TABLE_INTERVALS)];
+        i64::from(v) + ((i64::from(slope) * frac + (1 << (COORD_SHIFT - 1))) >> COORD_SHIFT)
+    }
+
+    /// Mass for `t = (d/l)²` (tests and reference use).
     pub fn quantized(&self, t: f64) -> i64 {
-        if !(t < 1.0) {
-            return 0;
-        }
-        let x = t * TABLE_INTERVALS as f64;
-        let j = x as usize; // t ≥ 0 by construction (a sum of squares)
-        let frac = x - j as f64;
-        let lo = self.values[j];
-        let hi = self.values[j + 1];
-        (lo + (hi - lo) * frac + 0.5) as i64
+        self.quantized_coord(Self::coordinate(t, (TABLE_INTERVALS as f64) * f64::from(1u32 << COORD_SHIFT)))
     }
 }
 

@@ -10,6 +10,7 @@ pub mod key;
 pub mod map;
 pub mod params;
 pub mod query;
+pub mod scatter;
 pub mod training;
 
 pub use key::{BlockKey, CellKey};
