@@ -244,3 +244,114 @@ impl Integrator {
         touched
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::core::kernel::unit_kernel;
+
+    fn wall_scan() -> (Vec<[f32; 3]>, [f64; 3]) {
+        // A 2 m × 2 m wall at x = 3, sampled every 2 cm, seen from the origin.
+        let mut pts = Vec::new();
+        for i in 0..100 {
+            for j in 0..100 {
+                pts.push([3.0, -1.0 + i as f32 * 0.02, -1.0 + j as f32 * 0.02]);
+            }
+        }
+        (pts, [0.05, 0.05, 0.05])
+    }
+
+    #[test]
+    fn cells_far_from_training_data_answer_the_prior() {
+        let params = MapParams::default();
+        let mut map = EvidenceMap::new(params);
+        let (pts, o) = wall_scan();
+        Integrator::new(params).integrate(&mut map, &pts, o, 1);
+        let th = Thresholds::default();
+        for cell in [CellKey::new(100, 100, 100), CellKey::new(30, 0, 20), CellKey::new(-40, 0, 0)] {
+            let e = map.estimate(cell, &th);
+            assert!(e.evidence.is_empty());
+            assert_eq!(e.probability, 0.5);
+            assert!((e.variance - 0.2495).abs() < 1e-4, "prior variance α0β0/((α0+β0)²(α0+β0+1))");
+            assert_eq!(e.state, CellState::Unknown);
+        }
+    }
+
+    #[test]
+    fn well_observed_cells_follow_nadaraya_watson() {
+        let params = MapParams::default();
+        let mut map = EvidenceMap::new(params);
+        let (pts, o) = wall_scan();
+        let mut integ = Integrator::new(params);
+        integ.integrate(&mut map, &pts, o, 1);
+        let set = integ.training(&pts, o).clone();
+        let res = params.resolution_m;
+        let mut checked = 0;
+        let keys = map.block_keys_sorted();
+        let cells = keys.iter().flat_map(|k| (0..crate::core::key::BLOCK_CELLS).map(move |i| k.cell(i)));
+        for cell in cells {
+            let c = cell.centre(res);
+            let dist = |p: &[f64; 3]| ((p[0] - c[0]).powi(2) + (p[1] - c[1]).powi(2) + (p[2] - c[2]).powi(2)).sqrt();
+            let y: f64 = set.hits.iter().map(|p| unit_kernel(dist(p), params.ell_m)).sum();
+            let k: f64 = y + set.frees.iter().map(|p| unit_kernel(dist(p), params.ell_m)).sum::<f64>();
+            // Eq. 8 holds where the evidence dwarfs the priors (α0 + β0 = 0.002).
+            if k < 1.0 {
+                continue;
+            }
+            let p = map.estimate(cell, &Thresholds::default()).probability;
+            assert!((p - y / k).abs() < 1e-3, "cell {cell:?}: p {p} vs Nadaraya–Watson {}", y / k);
+            checked += 1;
+        }
+        assert!(checked > 500, "only {checked} well-observed cells");
+        assert_eq!(map.estimate(CellKey::new(30, 0, 0), &Thresholds::default()).state, CellState::Occupied);
+        assert_eq!(map.estimate(CellKey::new(15, 0, 0), &Thresholds::default()).state, CellState::Free);
+    }
+
+    /// Station keeping: N insertions of one scan give exactly N times its evidence.
+    #[test]
+    fn repeated_scan_multiplies_evidence_exactly_and_removal_restores() {
+        let params = MapParams::default();
+        let (pts, o) = wall_scan();
+        let mut integ = Integrator::new(params);
+        let delta = integ.scan_delta(&pts, o, 1);
+        let mut map = EvidenceMap::new(params);
+        for _ in 0..15 {
+            map.apply(&delta, 1);
+        }
+        for (key, d) in &delta.blocks {
+            let b = map.block(*key).unwrap();
+            for i in 0..crate::core::key::BLOCK_CELLS {
+                assert_eq!((b.a[i], b.b[i]), (15 * d.a[i], 15 * d.b[i]));
+            }
+        }
+        for _ in 0..15 {
+            map.apply(&delta, -1);
+        }
+        assert_eq!(map.block_count(), 0, "removing every insertion restores the empty map");
+    }
+
+    #[test]
+    fn threads_do_not_change_the_bits() {
+        let params = MapParams::default();
+        let (pts, o) = wall_scan();
+        let mut integ = Integrator::new(params);
+        assert_eq!(integ.scan_delta(&pts, o, 1), integ.scan_delta(&pts, o, 2));
+        assert_eq!(integ.scan_delta(&pts, o, 1), integ.scan_delta(&pts, o, 5));
+    }
+
+    #[test]
+    fn merge_refuses_different_parameters() {
+        let a = EvidenceMap::new(MapParams::default());
+        let mut b = EvidenceMap::new(MapParams { ell_m: 0.3, ..Default::default() });
+        let err = b.merge_from(&a).unwrap_err();
+        assert!(err[0].starts_with("ell"), "{err:?}");
+    }
+
+    #[test]
+    fn log_odds_is_logit_of_probability() {
+        let params = MapParams::default();
+        let e = CellEstimate::from_evidence(Evidence { a: 3 << 24, b: 1 << 24 }, &params, &Thresholds::default());
+        let p = e.probability;
+        assert!((e.log_odds(&params) - (p / (1.0 - p)).ln()).abs() < 1e-12);
+    }
+}

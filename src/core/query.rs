@@ -256,3 +256,106 @@ pub fn traverse(origin_world: [f64; 3], dir_unit: [f64; 3], max_range_m: f64, re
 }
 
 const _: () = assert!(BLOCK_CELLS == 512);
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::core::{Integrator, MapParams};
+    use proptest::prelude::*;
+
+    fn room_map() -> EvidenceMap {
+        let params = MapParams::default();
+        let mut map = EvidenceMap::new(params);
+        let (_, scans) = crate::sim::simulate(0, 4, &crate::sim::Lidar::default());
+        let mut integ = Integrator::new(params);
+        for s in &scans {
+            integ.integrate(&mut map, &s.points_world, s.origin, 1);
+        }
+        map
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(200))]
+        /// The voxel walk visits exactly the cells that dense sampling along the ray finds.
+        #[test]
+        fn traversal_matches_dense_sampling(o in (-3.0f64..3.0, -3.0f64..3.0, -3.0f64..3.0),
+                                            d in (-1.0f64..1.0, -1.0f64..1.0, -1.0f64..1.0),
+                                            len in 0.05f64..3.0) {
+            let n = (d.0 * d.0 + d.1 * d.1 + d.2 * d.2).sqrt();
+            prop_assume!(n > 0.1);
+            let dir = [d.0 / n, d.1 / n, d.2 / n];
+            let origin = [o.0, o.1, o.2];
+            let walked = traverse(origin, dir, len, 0.1);
+            // Dense samples (1 µm steps would be exact; 0.2 mm steps miss only corner grazes,
+            // which the walk includes) must each lie in a walked cell, in order.
+            let mut idx = 0;
+            let steps = (len / 2e-4) as usize;
+            for i in 0..=steps {
+                let t = len * i as f64 / steps as f64;
+                let c = CellKey::from_point([origin[0] + dir[0] * t, origin[1] + dir[1] * t, origin[2] + dir[2] * t], 0.1).unwrap();
+                while idx < walked.len() && walked[idx] != c {
+                    idx += 1;
+                }
+                prop_assert!(idx < walked.len(), "sample at t={t} in {c:?} not walked in order");
+            }
+            // Consecutive walked cells are face neighbours.
+            for w in walked.windows(2) {
+                let d = (w[0].x - w[1].x).abs() + (w[0].y - w[1].y).abs() + (w[0].z - w[1].z).abs();
+                prop_assert_eq!(d, 1);
+            }
+        }
+    }
+
+    #[test]
+    fn point_box_and_ray_queries_agree_with_cell_estimates() {
+        let map = room_map();
+        let th = Thresholds::default();
+        let pts = [[5.0, 2.0, 0.7], [0.05, 5.0, 1.0], [1000.0, 0.0, 0.0], [f64::NAN, 0.0, 0.0]];
+        let ans = query_points(&map, &pts, &th);
+        assert!(ans[3].is_none());
+        for (p, a) in pts.iter().zip(&ans).take(3) {
+            let a = a.unwrap();
+            assert_eq!(a.cell, CellKey::from_point(*p, 0.1).unwrap());
+            assert_eq!(a.estimate, map.estimate(a.cell, &th));
+        }
+        // The box answer equals the per-cell answers for cells with evidence.
+        let q = BoxQuery { min_world: [4.0, 1.0, 0.0], max_world: [5.0, 2.0, 1.0], state: None, coarsen: 0 };
+        let cells = query_box(&map, &q, &th, 1_000_000).unwrap();
+        assert!(!cells.is_empty());
+        for c in &cells {
+            assert_eq!(c.estimate, map.estimate(c.min_cell, &th));
+        }
+        let n_with_evidence = (0..11)
+            .flat_map(|z| (10..21).flat_map(move |y| (40..51).map(move |x| CellKey::new(x, y, z))))
+            .filter(|c| !map.evidence(*c).is_empty())
+            .count();
+        assert_eq!(cells.len(), n_with_evidence);
+        // Coarsening sums evidence: total mass is preserved.
+        let coarse = query_box(&map, &BoxQuery { coarsen: 2, ..q }, &th, 1_000_000).unwrap();
+        let sum = |v: &[BoxCell]| v.iter().map(|c| c.estimate.evidence.a).sum::<i64>();
+        assert_eq!(sum(&coarse), sum(&cells));
+        // Limits.
+        assert!(matches!(query_box(&map, &q, &th, 10), Err(BoxError::TooLarge { .. })));
+        let bad = BoxQuery { min_world: [1.0, 0.0, 0.0], max_world: [0.0, 1.0, 1.0], ..q };
+        assert_eq!(query_box(&map, &bad, &th, 100), Err(BoxError::Malformed));
+    }
+
+    #[test]
+    fn rays_stop_at_walls_of_the_simulated_room() {
+        let map = room_map();
+        let th = Thresholds::default();
+        // From the route (x = 5, y = 2, sensor height) towards the south wall at y = 0.
+        let hit = cast_ray(&map, [5.0, 2.0, 0.7], [0.0, -1.0, 0.0], 8.0, StopAt::Occupied, &th).unwrap();
+        match hit {
+            RayHit::Blocked { cell, distance_m, estimate } => {
+                assert_eq!(estimate.state, CellState::Occupied);
+                assert!((1.7..=2.2).contains(&distance_m), "wall at ~2 m, got {distance_m} ({cell:?})");
+            }
+            RayHit::Clear => panic!("the wall must block the ray"),
+        }
+        let short = cast_ray(&map, [5.0, 2.0, 0.7], [0.0, -1.0, 0.0], 0.5, StopAt::Occupied, &th).unwrap();
+        assert_eq!(short, RayHit::Clear);
+        assert_eq!(cast_ray(&map, [5.0, 2.0, 0.7], [0.0; 3], 1.0, StopAt::Occupied, &th), Err(RayError::Direction));
+        assert!(matches!(cast_ray(&map, [5.0, 2.0, 0.7], [1.0, 0.0, 0.0], f64::INFINITY, StopAt::Occupied, &th), Err(RayError::Range(_))));
+    }
+}

@@ -85,7 +85,7 @@ impl VoxelCentroids {
 fn voxel_key(p: [f64; 3], inv_ds: f64) -> Option<[i32; 3]> {
     let k = |v: f64| {
         let f = (v * inv_ds).floor();
-        (f >= -1.0e9 && f <= 1.0e9).then_some(f as i32)
+        (-1.0e9..=1.0e9).contains(&f).then_some(f as i32)
     };
     Some([k(p[0])?, k(p[1])?, k(p[2])?])
 }
@@ -225,5 +225,28 @@ mod tests {
         let t = b.build(&[[1.01, 1.01, 1.01], [1.03, 1.05, 1.07], [1.21, 1.0, 1.0]], [0.0; 3], &MapParams::default());
         assert_eq!(t.hits.len(), 2);
         assert!((t.hits[0][0] - 1.02).abs() < 1e-6 && (t.hits[0][2] - 1.04).abs() < 1e-6);
+    }
+
+    /// algorithm.md §4: the exact training-set sizes of la3dm's semantics on the sample data
+    /// (ds 0.1, fr 0.5, max range 8, rays beyond range dropped). Skipped without `../shared`.
+    #[test]
+    fn sample_data_training_counts_match_la3dm() {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/la3dm/sim_structured");
+        if !dir.is_dir() {
+            eprintln!("skipped: {} not present", dir.display());
+            return;
+        }
+        let voxels = [1918, 1459, 446, 544, 1414, 1733, 1737, 1919, 1587, 1398, 1779, 2162];
+        let kept = [1720, 1297, 446, 544, 1049, 1604, 1677, 1481, 1384, 1210, 1728, 1958];
+        let total = [5546, 3966, 711, 1076, 3806, 4672, 4655, 6591, 4516, 4228, 4699, 6561];
+        let params = params(8.0, RangeMode::Drop);
+        let mut b = TrainingBuilder::default();
+        for i in 0..12 {
+            let bytes = std::fs::read(dir.join(format!("sim_structured_{}.pcd", i + 1))).unwrap();
+            let cloud = crate::io::pcd::read_pcd(&bytes).unwrap();
+            let v = cloud.viewpoint.unwrap();
+            let t = b.build(&cloud.points, [v[0], v[1], v[2]], &params);
+            assert_eq!((t.hit_voxels, t.hits.len(), t.len()), (voxels[i], kept[i], total[i]), "scan {}", i + 1);
+        }
     }
 }

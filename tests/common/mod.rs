@@ -1,0 +1,190 @@
+//! Helpers shared by the command-line integration tests: run the real `bgkmap` binary in a
+//! temporary directory, check failures, write a simulated dataset, and read the few JSON / CSV
+//! fields the tests need (no JSON crate: the outputs are flat objects).
+#![allow(clippy::unwrap_used)]
+#![allow(dead_code)] // each test crate uses a different subset
+
+use std::ffi::OsStr;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+/// Runs `bgkmap ARGS…` with `dir` as the working directory (relative paths resolve there).
+pub fn run<I, S>(dir: &Path, args: I) -> Output
+where
+    I: IntoIterator<Item = S>,
+    S: AsRef<OsStr>,
+{
+    Command::new(env!("CARGO_BIN_EXE_bgkmap")).current_dir(dir).args(args).output().unwrap()
+}
+
+fn describe(args: &[String], out: &Output) -> String {
+    format!(
+        "bgkmap {}\nstatus: {}\n--- stdout ---\n{}\n--- stderr ---\n{}",
+        args.join(" "),
+        out.status,
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    )
+}
+
+fn strings<I, S>(args: I) -> Vec<String>
+where
+    I: IntoIterator<Item = S>,
+    S: AsRef<OsStr>,
+{
+    args.into_iter().map(|a| a.as_ref().to_string_lossy().into_owned()).collect()
+}
+
+/// Runs the binary, asserts success and returns its stdout.
+pub fn run_ok<I, S>(dir: &Path, args: I) -> Vec<u8>
+where
+    I: IntoIterator<Item = S>,
+    S: AsRef<OsStr>,
+{
+    let args = strings(args);
+    let out = run(dir, &args);
+    assert!(out.status.success(), "expected success:\n{}", describe(&args, &out));
+    out.stdout
+}
+
+/// Like [`run_ok`], with stdout as UTF-8 text.
+pub fn run_ok_text<I, S>(dir: &Path, args: I) -> String
+where
+    I: IntoIterator<Item = S>,
+    S: AsRef<OsStr>,
+{
+    String::from_utf8(run_ok(dir, args)).unwrap()
+}
+
+/// Runs the binary, asserts it fails (non-zero exit, `error: …` on stderr containing every
+/// needle, case-insensitively) and returns stderr.
+pub fn run_fail<I, S>(dir: &Path, args: I, needles: &[&str]) -> String
+where
+    I: IntoIterator<Item = S>,
+    S: AsRef<OsStr>,
+{
+    let args = strings(args);
+    let out = run(dir, &args);
+    let text = describe(&args, &out);
+    assert!(!out.status.success(), "expected failure:\n{text}");
+    assert!(out.status.code().is_some(), "killed by a signal:\n{text}");
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(stderr.contains("error:"), "stderr lacks `error:`:\n{text}");
+    let lower = stderr.to_lowercase();
+    for n in needles {
+        assert!(lower.contains(&n.to_lowercase()), "stderr lacks {n:?}:\n{text}");
+    }
+    stderr
+}
+
+/// Like [`run_fail`], and also checks the exit code.
+pub fn run_fail_code<I, S>(dir: &Path, args: I, code: i32, needles: &[&str]) -> String
+where
+    I: IntoIterator<Item = S>,
+    S: AsRef<OsStr>,
+{
+    let args = strings(args);
+    let out = run(dir, &args);
+    assert_eq!(out.status.code(), Some(code), "unexpected exit code:\n{}", describe(&args, &out));
+    run_fail(dir, &args, needles)
+}
+
+/// Asserts that a failed command left nothing behind: `out` does not exist and `dir` holds no
+/// temporary `*.tmp-*` sibling.
+pub fn assert_no_output(dir: &Path, out: &str) {
+    assert!(!dir.join(out).exists(), "{out} was created by a failing command");
+    let stray: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.contains(".tmp-"))
+        .collect();
+    assert!(stray.is_empty(), "stray temporary files: {stray:?}");
+}
+
+/// A simulated dataset written by `bgkmap simulate`.
+#[derive(Debug)]
+pub struct SimData {
+    /// Scan file names relative to the working directory (`sim/scan_01.pcd`, …).
+    pub scans: Vec<String>,
+    /// `sim/truth.bt`.
+    pub truth: String,
+}
+
+/// `bgkmap simulate --out sim --scans N` inside `dir`.
+pub fn simulate(dir: &Path, scans: usize) -> SimData {
+    run_ok(dir, ["simulate", "--out", "sim", "--scans", &scans.to_string()]);
+    let scans: Vec<String> = (1..=scans).map(|i| format!("sim/scan_{i:02}.pcd")).collect();
+    for s in &scans {
+        assert!(dir.join(s).is_file(), "simulate did not write {s}");
+    }
+    let truth = "sim/truth.bt".to_string();
+    assert!(dir.join(&truth).is_file(), "simulate did not write {truth}");
+    SimData { scans, truth }
+}
+
+/// `bgkmap build --out OUT EXTRA… SCANS…`.
+pub fn build(dir: &Path, out: &str, extra: &[&str], scans: &[String]) {
+    let mut args: Vec<String> = vec!["build".into(), "--out".into(), out.into()];
+    args.extend(extra.iter().map(|s| s.to_string()));
+    args.extend(scans.iter().cloned());
+    run_ok(dir, &args);
+    assert!(dir.join(out).is_file(), "build did not write {out}");
+}
+
+/// `bgkmap export MAP --format csv` (to stdout).
+pub fn export_csv(dir: &Path, map: &str) -> String {
+    run_ok_text(dir, ["export", map, "--format", "csv"])
+}
+
+/// The sample data directory (la3dm's `sim_structured`), if present.
+pub fn sample_dir() -> Option<PathBuf> {
+    let d = PathBuf::from(concat!(env!("CARGO_MANIFEST_DIR"), "/../shared/data/la3dm/sim_structured"));
+    if d.is_dir() {
+        Some(d)
+    } else {
+        eprintln!("note: {} not found; skipping this test", d.display());
+        None
+    }
+}
+
+/// The number after `"key":` in a flat JSON object.
+pub fn json_number(json: &str, key: &str) -> f64 {
+    let pat = format!("\"{key}\":");
+    let start = json.find(&pat).unwrap_or_else(|| panic!("no key {key:?} in {json}")) + pat.len();
+    let rest = json[start..].trim_start();
+    let end = rest.find([',', '}', ']']).unwrap_or(rest.len());
+    rest[..end].trim().parse().unwrap_or_else(|e| panic!("{key}: {:?} is not a number ({e}) in {json}", &rest[..end]))
+}
+
+/// One CSV row of `export --format csv`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CsvRow {
+    pub x: f64,
+    pub y: f64,
+    pub z: f64,
+    pub size: f64,
+    pub probability: f64,
+    pub variance: f64,
+}
+
+impl CsvRow {
+    /// Integer cell key of the row's centre.
+    pub fn key(&self) -> [i32; 3] {
+        [self.x, self.y, self.z].map(|c| (c / self.size - 0.5).round() as i32)
+    }
+}
+
+pub const CSV_HEADER: &str = "x,y,z,size,probability,variance";
+
+/// Parses a whole CSV export (header checked), returning each row with its line.
+pub fn parse_csv(csv: &str) -> Vec<(CsvRow, &str)> {
+    let mut lines = csv.lines();
+    assert_eq!(lines.next(), Some(CSV_HEADER));
+    lines
+        .map(|line| {
+            let v: Vec<f64> = line.split(',').map(|t| t.parse().unwrap_or_else(|_| panic!("bad CSV line {line:?}"))).collect();
+            assert_eq!(v.len(), 6, "bad CSV line {line:?}");
+            (CsvRow { x: v[0], y: v[1], z: v[2], size: v[3], probability: v[4], variance: v[5] }, line)
+        })
+        .collect()
+}
