@@ -131,7 +131,8 @@ pub fn parse_floats(s: &str, n: usize) -> Result<Vec<f64>, String> {
 pub fn load_scan(path: &Path, args: &ScanArgs) -> Result<Scan> {
     let bytes = std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
     let cloud = read_pcd(&bytes).with_context(|| format!("{}", path.display()))?;
-    let scan = scan_from_pcd(cloud, args.frame, args.origin).with_context(|| format!("{}", path.display()))?;
+    let scan =
+        scan_from_pcd(cloud, args.frame, args.origin).with_context(|| format!("{}", path.display()))?;
     if scan.points_world.is_empty() {
         bail!("{}: the scan has no finite points", path.display());
     }

@@ -75,6 +75,11 @@ pub fn run_merge(a: MergeArgs) -> Result<()> {
         }
     }
     save_map(&a.out, &merged).with_context(|| "writing the merged map")?;
-    eprintln!("{}: {} blocks, {} cells with evidence", a.out.display(), merged.block_count(), merged.cells_with_evidence());
+    eprintln!(
+        "{}: {} blocks, {} cells with evidence",
+        a.out.display(),
+        merged.block_count(),
+        merged.cells_with_evidence()
+    );
     Ok(())
 }

@@ -33,7 +33,10 @@ pub fn run_simulate(a: SimulateArgs) -> Result<()> {
     let (scene, scans) = simulate(a.seed, a.scans, &Lidar::default());
     for (i, s) in scans.iter().enumerate() {
         let vp = [s.origin[0], s.origin[1], s.origin[2], 1.0, 0.0, 0.0, 0.0];
-        write_output(Some(&a.out.join(format!("scan_{:02}.pcd", i + 1))), &write_pcd_binary(&s.points_world, vp))?;
+        write_output(
+            Some(&a.out.join(format!("scan_{:02}.pcd", i + 1))),
+            &write_pcd_binary(&s.points_world, vp),
+        )?;
     }
     write_truth(&scene, a.resolution, &a.out.join("truth.bt"))?;
     eprintln!("{}: {} scans and truth.bt (seed {})", a.out.display(), scans.len(), a.seed);
@@ -81,7 +84,12 @@ pub fn run_demo(a: DemoArgs) -> Result<()> {
         lidar.rays_per_scan(),
         ms / scans.len() as f64
     );
-    println!("  map: {} ({} cells with evidence in {} blocks)", map_path.display(), map.cells_with_evidence(), map.block_count());
+    println!(
+        "  map: {} ({} cells with evidence in {} blocks)",
+        map_path.display(),
+        map.cells_with_evidence(),
+        map.block_count()
+    );
     println!(
         "  accuracy against the analytic ground truth: AUC {:.4} (unknown = 0.5), {:.4} on covered cells",
         report.all.auc, report.covered.auc

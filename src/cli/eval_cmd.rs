@@ -106,10 +106,8 @@ pub fn run(a: EvalArgs) -> Result<()> {
         }
     }
     if let Some(png) = &a.roc {
-        let curves: Vec<_> = reports
-            .iter()
-            .map(|r| RocCurve { label: file_label(&r.map), roc: &r.all })
-            .collect();
+        let curves: Vec<_> =
+            reports.iter().map(|r| RocCurve { label: file_label(&r.map), roc: &r.all }).collect();
         write_roc_png(png, &format!("ROC against {}", file_label(&a.truth.display().to_string())), &curves)?;
     }
     Ok(())

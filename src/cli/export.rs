@@ -71,13 +71,22 @@ pub fn run(a: ExportArgs) -> Result<()> {
 }
 
 /// Every cell with evidence (inside the box, if given), sorted by key (x, then y, then z).
-fn rows(map: &EvidenceMap, bbox: Option<([f64; 3], [f64; 3])>, th: &crate::core::Thresholds) -> Result<Vec<Row>> {
+fn rows(
+    map: &EvidenceMap,
+    bbox: Option<([f64; 3], [f64; 3])>,
+    th: &crate::core::Thresholds,
+) -> Result<Vec<Row>> {
     let mut rows = Vec::new();
     if let Some((min_world, max_world)) = bbox {
         let q = BoxQuery { min_world, max_world, state: None, coarsen: 0 };
         for c in query_box(map, &q, th, u64::MAX)? {
             let e = c.estimate;
-            rows.push(Row { cell: c.min_cell, probability: e.probability, variance: e.variance, state: e.state });
+            rows.push(Row {
+                cell: c.min_cell,
+                probability: e.probability,
+                variance: e.variance,
+                state: e.state,
+            });
         }
     } else {
         for key in map.block_keys_sorted() {

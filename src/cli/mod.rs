@@ -14,7 +14,11 @@ use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
 #[derive(Debug, Parser)]
-#[command(name = "bgkmap", version, about = "Exact BGK occupancy maps: build, merge, export, evaluate, benchmark")]
+#[command(
+    name = "bgkmap",
+    version,
+    about = "Exact BGK occupancy maps: build, merge, export, evaluate, benchmark"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,

@@ -1,7 +1,7 @@
 //! ROC curve plots (PNG) for `bgkmap eval`.
 //!
 //! Text is rendered with DejaVu Sans embedded in the binary
-//! (`assets/fonts/DejaVuSans.ttf`, license in `assets/fonts/LICENSE-DejaVu.txt`)
+//! (`src/cli/fonts/DejaVuSans.ttf`, license in `src/cli/fonts/LICENSE-DejaVu.txt`)
 //! through plotters' `ab_glyph` backend, so plotting needs no system fonts,
 //! fontconfig or freetype.
 
@@ -30,8 +30,8 @@ const SIZE_PX: u32 = 800;
 /// the kept points are well under a pixel apart, so the shape is preserved.
 const MAX_DRAWN_POINTS: usize = 2000;
 
-/// DejaVu Sans 2.37 (Bitstream Vera license, see `assets/fonts/LICENSE-DejaVu.txt`).
-static DEJAVU_SANS: &[u8] = include_bytes!("../../assets/fonts/DejaVuSans.ttf");
+/// DejaVu Sans 2.37 (Bitstream Vera license, see `src/cli/fonts/LICENSE-DejaVu.txt`).
+static DEJAVU_SANS: &[u8] = include_bytes!("fonts/DejaVuSans.ttf");
 
 /// The font family name the embedded font is registered under; plotters'
 /// `FontFamily::SansSerif` resolves to it.

@@ -126,7 +126,11 @@ pub struct PairGeometry {
 impl PairGeometry {
     pub fn new(res_m: f64, ell_m: f64) -> Self {
         let ell_cells = ell_m / res_m;
-        Self { res_m, ell_cells, scale: TABLE_INTERVALS as f64 * f64::from(1u32 << COORD_SHIFT) / (ell_cells * ell_cells) }
+        Self {
+            res_m,
+            ell_cells,
+            scale: TABLE_INTERVALS as f64 * f64::from(1u32 << COORD_SHIFT) / (ell_cells * ell_cells),
+        }
     }
 
     /// Stencil radius: cells within `ell` of a point differ from its cell by at most this.
@@ -136,9 +140,16 @@ impl PairGeometry {
 }
 
 /// Reference: the evidence of one cell by summing over *all* training points (gather, O(N)).
-pub fn brute_force_cell(set: &TrainingSet, cell: CellKey, geo: &PairGeometry, table: &KernelTable) -> (i64, i64) {
+pub fn brute_force_cell(
+    set: &TrainingSet,
+    cell: CellKey,
+    geo: &PairGeometry,
+    table: &KernelTable,
+) -> (i64, i64) {
     let sum = |pts: &[[f64; 3]]| -> i64 {
-        pts.iter().map(|&p| table.quantized_coord(pair_coord(to_cell_units(p, geo.res_m), cell, geo.scale))).sum()
+        pts.iter()
+            .map(|&p| table.quantized_coord(pair_coord(to_cell_units(p, geo.res_m), cell, geo.scale)))
+            .sum()
     };
     (sum(&set.hits), sum(&set.frees))
 }
@@ -190,7 +201,9 @@ mod tests {
             prop::sample::select(vec![0.1, 0.2]),
             prop::sample::select(vec![0.1, 0.2, 0.3, 0.45]),
         )
-            .prop_map(|(pts, o, res, ell)| (pts.into_iter().map(|(x, y, z)| [x, y, z]).collect(), [o.0, o.1, o.2], res, ell))
+            .prop_map(|(pts, o, res, ell)| {
+                (pts.into_iter().map(|(x, y, z)| [x, y, z]).collect(), [o.0, o.1, o.2], res, ell)
+            })
     }
 
     proptest! {
@@ -235,7 +248,8 @@ mod tests {
 
     #[test]
     fn far_outliers_are_tiled_not_allocated_densely() {
-        let set = TrainingSet { hits: vec![[0.0, 0.0, 0.0], [5000.0, -4000.0, 3000.0]], ..Default::default() };
+        let set =
+            TrainingSet { hits: vec![[0.0, 0.0, 0.0], [5000.0, -4000.0, 3000.0]], ..Default::default() };
         let geo = PairGeometry::new(0.1, 0.2);
         let d = Scatter::default().delta(&set, &geo, &KernelTable::new());
         let cells = delta_cells(&d);

@@ -70,7 +70,11 @@ impl KernelTable {
     pub fn new() -> Self {
         let n = TABLE_INTERVALS;
         let value = |j: usize| {
-            if j < n { round_to_i64(unit_kernel_of_u(libm::sqrt(j as f64 / n as f64)) * FIXED_ONE) as i32 } else { 0 }
+            if j < n {
+                round_to_i64(unit_kernel_of_u(libm::sqrt(j as f64 / n as f64)) * FIXED_ONE) as i32
+            } else {
+                0
+            }
         };
         let mut entries = Box::new([[0i32; 2]; TABLE_INTERVALS + 2]);
         for (j, e) in entries.iter_mut().enumerate().take(n) {
@@ -111,7 +115,15 @@ mod tests {
     /// algorithm.md §3 reference values.
     #[test]
     fn kernel_matches_reference_table() {
-        let head = [(0.0, 1.0), (0.05, 0.659155), (0.10, 0.166667), (0.15, 0.007512), (0.20, 0.0), (0.25, 0.0), (0.30, 0.0)];
+        let head = [
+            (0.0, 1.0),
+            (0.05, 0.659155),
+            (0.10, 0.166667),
+            (0.15, 0.007512),
+            (0.20, 0.0),
+            (0.25, 0.0),
+            (0.30, 0.0),
+        ];
         for (d, k) in head {
             assert!((sparse_kernel(d, 0.2, 1.0) - k).abs() < 1e-6, "d={d}: {}", sparse_kernel(d, 0.2, 1.0));
         }

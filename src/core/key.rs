@@ -59,8 +59,9 @@ impl CellKey {
 
     /// Index of this cell inside its block, x fastest: `x + B·y + B²·z` of the local coordinates.
     pub fn index_in_block(self) -> usize {
-        ((self.x & BLOCK_MASK) | ((self.y & BLOCK_MASK) << BLOCK_SHIFT) | ((self.z & BLOCK_MASK) << (2 * BLOCK_SHIFT)))
-            as usize
+        ((self.x & BLOCK_MASK)
+            | ((self.y & BLOCK_MASK) << BLOCK_SHIFT)
+            | ((self.z & BLOCK_MASK) << (2 * BLOCK_SHIFT))) as usize
     }
 }
 

@@ -215,7 +215,12 @@ impl Integrator {
     }
 
     /// The evidence one scan adds, computed on `threads` threads (same bits for any count).
-    pub fn scan_delta(&mut self, points_world: &[[f32; 3]], origin_world: [f64; 3], threads: usize) -> ScanDelta {
+    pub fn scan_delta(
+        &mut self,
+        points_world: &[[f32; 3]],
+        origin_world: [f64; 3],
+        threads: usize,
+    ) -> ScanDelta {
         self.training.build_into(points_world, origin_world, &self.params, &mut self.set);
         if threads <= 1 {
             return self.scatter.delta(&self.set, &self.geometry, &self.table);
@@ -230,13 +235,22 @@ impl Integrator {
                 .chunks(chunk)
                 .map(|c| s.spawn(move || Scatter::default().delta_of(c, geo, table)))
                 .collect();
-            handles.into_iter().map(|h| h.join().unwrap_or_else(|e| std::panic::resume_unwind(e))).collect::<Vec<_>>()
+            handles
+                .into_iter()
+                .map(|h| h.join().unwrap_or_else(|e| std::panic::resume_unwind(e)))
+                .collect::<Vec<_>>()
         });
         ScanDelta::sum(parts)
     }
 
     /// Integrates one scan into `map` and returns the number of blocks it touched.
-    pub fn integrate(&mut self, map: &mut EvidenceMap, points_world: &[[f32; 3]], origin_world: [f64; 3], threads: usize) -> usize {
+    pub fn integrate(
+        &mut self,
+        map: &mut EvidenceMap,
+        points_world: &[[f32; 3]],
+        origin_world: [f64; 3],
+        threads: usize,
+    ) -> usize {
         let delta = self.scan_delta(points_world, origin_world, threads);
         let touched = delta.blocks.len();
         map.apply(&delta, 1);
@@ -291,7 +305,8 @@ mod tests {
         let cells = keys.iter().flat_map(|k| (0..crate::core::key::BLOCK_CELLS).map(move |i| k.cell(i)));
         for cell in cells {
             let c = cell.centre(res);
-            let dist = |p: &[f64; 3]| ((p[0] - c[0]).powi(2) + (p[1] - c[1]).powi(2) + (p[2] - c[2]).powi(2)).sqrt();
+            let dist =
+                |p: &[f64; 3]| ((p[0] - c[0]).powi(2) + (p[1] - c[1]).powi(2) + (p[2] - c[2]).powi(2)).sqrt();
             let y: f64 = set.hits.iter().map(|p| unit_kernel(dist(p), params.ell_m)).sum();
             let k: f64 = y + set.frees.iter().map(|p| unit_kernel(dist(p), params.ell_m)).sum::<f64>();
             // Eq. 8 holds where the evidence dwarfs the priors (α0 + β0 = 0.002).
@@ -350,7 +365,8 @@ mod tests {
     #[test]
     fn log_odds_is_logit_of_probability() {
         let params = MapParams::default();
-        let e = CellEstimate::from_evidence(Evidence { a: 3 << 24, b: 1 << 24 }, &params, &Thresholds::default());
+        let e =
+            CellEstimate::from_evidence(Evidence { a: 3 << 24, b: 1 << 24 }, &params, &Thresholds::default());
         let p = e.probability;
         assert!((e.log_odds(&params) - (p / (1.0 - p)).ln()).abs() < 1e-12);
     }

@@ -123,7 +123,11 @@ impl MapParams {
     /// Checks every parameter; the error names the offending one.
     pub fn validate(&self) -> Result<(), ParamError> {
         let positive = |name: &'static str, v: f64| {
-            if v.is_finite() && v > 0.0 { Ok(()) } else { Err(ParamError::new(name, "must be finite and > 0")) }
+            if v.is_finite() && v > 0.0 {
+                Ok(())
+            } else {
+                Err(ParamError::new(name, "must be finite and > 0"))
+            }
         };
         positive("resolution", self.resolution_m)?;
         positive("sf2", self.sf2)?;
@@ -183,7 +187,9 @@ impl MapParams {
         let mut p = MapParams::default();
         let mut seen = std::collections::BTreeSet::new();
         for (k, v) in pairs {
-            let f = || v.parse::<f64>().map_err(|_| ParamError::new(param_name(k), format!("not a number: {v:?}")));
+            let f = || {
+                v.parse::<f64>().map_err(|_| ParamError::new(param_name(k), format!("not a number: {v:?}")))
+            };
             match k {
                 "resolution" => p.resolution_m = f()?,
                 "sf2" => p.sf2 = f()?,
@@ -249,7 +255,13 @@ mod tests {
 
     #[test]
     fn pairs_round_trip_bit_exact() {
-        let p = MapParams { ell_m: 0.3, sf2: 10.0, max_range_m: 7.3, range_mode: RangeMode::Drop, ..Default::default() };
+        let p = MapParams {
+            ell_m: 0.3,
+            sf2: 10.0,
+            max_range_m: 7.3,
+            range_mode: RangeMode::Drop,
+            ..Default::default()
+        };
         let pairs = p.to_pairs();
         let back = MapParams::from_pairs(pairs.iter().map(|(k, v)| (*k, v.as_str()))).unwrap();
         assert_eq!(back, p);

@@ -3,7 +3,7 @@
 //! Geometric arguments are world-frame metres. Answers name the cell they came from.
 
 use super::key::{BLOCK_CELLS, CellKey};
-use super::map::{CellEstimate, CellState, EvidenceMap, Evidence};
+use super::map::{CellEstimate, CellState, Evidence, EvidenceMap};
 use super::params::Thresholds;
 
 /// One answer of a point query.
@@ -15,11 +15,17 @@ pub struct PointAnswer {
 
 /// Answers for points in the world frame (metres). Points outside the key range or not finite
 /// answer `None`.
-pub fn query_points(map: &EvidenceMap, points_world: &[[f64; 3]], th: &Thresholds) -> Vec<Option<PointAnswer>> {
+pub fn query_points(
+    map: &EvidenceMap,
+    points_world: &[[f64; 3]],
+    th: &Thresholds,
+) -> Vec<Option<PointAnswer>> {
     let res = map.params().resolution_m;
     points_world
         .iter()
-        .map(|&p| CellKey::from_point(p, res).map(|cell| PointAnswer { cell, estimate: map.estimate(cell, th) }))
+        .map(|&p| {
+            CellKey::from_point(p, res).map(|cell| PointAnswer { cell, estimate: map.estimate(cell, th) })
+        })
         .collect()
 }
 
@@ -56,7 +62,12 @@ pub enum BoxError {
 /// Cells inside `q` (inclusive of boundary cells) that hold evidence, sorted by key; coarse
 /// cubes sum their children's evidence. `max_cells` bounds the number of lattice positions
 /// visited (at the query's coarsened resolution).
-pub fn query_box(map: &EvidenceMap, q: &BoxQuery, th: &Thresholds, max_cells: u64) -> Result<Vec<BoxCell>, BoxError> {
+pub fn query_box(
+    map: &EvidenceMap,
+    q: &BoxQuery,
+    th: &Thresholds,
+    max_cells: u64,
+) -> Result<Vec<BoxCell>, BoxError> {
     if q.coarsen > 10 {
         return Err(BoxError::Coarsen(q.coarsen));
     }
@@ -355,7 +366,13 @@ mod tests {
         }
         let short = cast_ray(&map, [5.0, 2.0, 0.7], [0.0, -1.0, 0.0], 0.5, StopAt::Occupied, &th).unwrap();
         assert_eq!(short, RayHit::Clear);
-        assert_eq!(cast_ray(&map, [5.0, 2.0, 0.7], [0.0; 3], 1.0, StopAt::Occupied, &th), Err(RayError::Direction));
-        assert!(matches!(cast_ray(&map, [5.0, 2.0, 0.7], [1.0, 0.0, 0.0], f64::INFINITY, StopAt::Occupied, &th), Err(RayError::Range(_))));
+        assert_eq!(
+            cast_ray(&map, [5.0, 2.0, 0.7], [0.0; 3], 1.0, StopAt::Occupied, &th),
+            Err(RayError::Direction)
+        );
+        assert!(matches!(
+            cast_ray(&map, [5.0, 2.0, 0.7], [1.0, 0.0, 0.0], f64::INFINITY, StopAt::Occupied, &th),
+            Err(RayError::Range(_))
+        ));
     }
 }

@@ -76,7 +76,12 @@ impl SlotGrid {
 impl Scatter {
     /// The exact evidence of a training set (world metres): for every cell within `ell` of a
     /// training point, the sum of quantised kernel values over all training points within `ell`.
-    pub fn delta(&mut self, set: &super::training::TrainingSet, geo: &PairGeometry, table: &KernelTable) -> ScanDelta {
+    pub fn delta(
+        &mut self,
+        set: &super::training::TrainingSet,
+        geo: &PairGeometry,
+        table: &KernelTable,
+    ) -> ScanDelta {
         let mut cells = std::mem::take(&mut self.cells);
         cells.clear();
         let to_cells = |p: &[f64; 3]| super::evidence::to_cell_units(*p, geo.res_m);
@@ -110,7 +115,13 @@ impl Scatter {
         }
     }
 
-    fn delta_of_tile(&mut self, pts: &[CellPoint], geo: &PairGeometry, table: &KernelTable, r: i32) -> ScanDelta {
+    fn delta_of_tile(
+        &mut self,
+        pts: &[CellPoint],
+        geo: &PairGeometry,
+        table: &KernelTable,
+        r: i32,
+    ) -> ScanDelta {
         let (lo, hi) = block_bounds(pts);
         self.bucket(pts, lo, hi);
         // Delta blocks reach R cells beyond the points' blocks: at most ⌈R/B⌉ blocks further.
@@ -225,7 +236,15 @@ impl Scatter {
 
 /// Adds one point's kernel mass to the brick of `block` (edge `w`, radius `r`).
 #[inline(always)]
-fn scatter_point(brick: &mut [i64], w: usize, block: [i32; 3], p: [f64; 3], r: i32, geo: &PairGeometry, table: &KernelTable) {
+fn scatter_point(
+    brick: &mut [i64],
+    w: usize,
+    block: [i32; 3],
+    p: [f64; 3],
+    r: i32,
+    geo: &PairGeometry,
+    table: &KernelTable,
+) {
     // Constant stencil sizes let the compiler unroll the short loops.
     match r {
         1 => scatter_point_n::<3>(brick, w, block, p, 3, geo, table),
@@ -274,7 +293,8 @@ fn scatter_point_n<const N: usize>(
             let x1 = n - 1 - (r + 1..n).map(|i| usize::from(dx[i] >= rem)).sum::<usize>();
             let start = base + (iz * w + iy) * w;
             for ix in x0..=x1 {
-                brick[start + ix] += table.quantized_coord(KernelTable::coordinate(row_d2 + dx[ix], geo.scale));
+                brick[start + ix] +=
+                    table.quantized_coord(KernelTable::coordinate(row_d2 + dx[ix], geo.scale));
             }
         }
     }

@@ -100,7 +100,12 @@ pub struct TrainingBuilder {
 
 impl TrainingBuilder {
     /// Training data for `points_world` seen from `origin_world` (both metres, world frame).
-    pub fn build(&mut self, points_world: &[[f32; 3]], origin_world: [f64; 3], params: &MapParams) -> TrainingSet {
+    pub fn build(
+        &mut self,
+        points_world: &[[f32; 3]],
+        origin_world: [f64; 3],
+        params: &MapParams,
+    ) -> TrainingSet {
         let mut out = TrainingSet::default();
         self.build_into(points_world, origin_world, params, &mut out);
         out
@@ -153,7 +158,6 @@ impl TrainingBuilder {
         }
         self.frees.centroids_into(&mut out.frees);
     }
-
 }
 
 /// Free samples along the unit direction `n` from `o`: `fr, 2fr, … < ray_len`, plus `ray_len − fr`.
@@ -214,7 +218,11 @@ mod tests {
     #[test]
     fn non_finite_points_are_dropped_and_counted() {
         let mut b = TrainingBuilder::default();
-        let t = b.build(&[[f32::NAN, 0.0, 0.0], [1.0, f32::INFINITY, 0.0], [1.0, 1.0, 1.0]], [0.0; 3], &MapParams::default());
+        let t = b.build(
+            &[[f32::NAN, 0.0, 0.0], [1.0, f32::INFINITY, 0.0], [1.0, 1.0, 1.0]],
+            [0.0; 3],
+            &MapParams::default(),
+        );
         assert_eq!(t.dropped_points, 2);
         assert_eq!(t.hits.len(), 1);
     }
@@ -222,7 +230,11 @@ mod tests {
     #[test]
     fn hits_are_voxel_centroids() {
         let mut b = TrainingBuilder::default();
-        let t = b.build(&[[1.01, 1.01, 1.01], [1.03, 1.05, 1.07], [1.21, 1.0, 1.0]], [0.0; 3], &MapParams::default());
+        let t = b.build(
+            &[[1.01, 1.01, 1.01], [1.03, 1.05, 1.07], [1.21, 1.0, 1.0]],
+            [0.0; 3],
+            &MapParams::default(),
+        );
         assert_eq!(t.hits.len(), 2);
         assert!((t.hits[0][0] - 1.02).abs() < 1e-6 && (t.hits[0][2] - 1.04).abs() < 1e-6);
     }
@@ -231,7 +243,8 @@ mod tests {
     /// (ds 0.1, fr 0.5, max range 8, rays beyond range dropped). Skipped without `../shared`.
     #[test]
     fn sample_data_training_counts_match_la3dm() {
-        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/la3dm/sim_structured");
+        let dir =
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/la3dm/sim_structured");
         if !dir.is_dir() {
             eprintln!("skipped: {} not present", dir.display());
             return;
@@ -246,7 +259,12 @@ mod tests {
             let cloud = crate::io::pcd::read_pcd(&bytes).unwrap();
             let v = cloud.viewpoint.unwrap();
             let t = b.build(&cloud.points, [v[0], v[1], v[2]], &params);
-            assert_eq!((t.hit_voxels, t.hits.len(), t.len()), (voxels[i], kept[i], total[i]), "scan {}", i + 1);
+            assert_eq!(
+                (t.hit_voxels, t.hits.len(), t.len()),
+                (voxels[i], kept[i], total[i]),
+                "scan {}",
+                i + 1
+            );
         }
     }
 }

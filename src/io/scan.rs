@@ -37,7 +37,11 @@ pub enum ScanError {
 pub const UNIT_QUATERNION_TOLERANCE: f64 = 1e-3;
 
 /// Converts a PCD cloud; `origin_override` (world frame) replaces the VIEWPOINT translation.
-pub fn scan_from_pcd(cloud: PcdCloud, frame: PointFrame, origin_override: Option<[f64; 3]>) -> Result<Scan, ScanError> {
+pub fn scan_from_pcd(
+    cloud: PcdCloud,
+    frame: PointFrame,
+    origin_override: Option<[f64; 3]>,
+) -> Result<Scan, ScanError> {
     let vp = cloud.viewpoint;
     let origin_world = match (origin_override, vp) {
         (Some(o), _) => o,
@@ -74,7 +78,8 @@ mod tests {
 
     #[test]
     fn world_frame_keeps_points_and_uses_viewpoint_origin() {
-        let s = scan_from_pcd(cloud(Some([1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 1.0])), PointFrame::World, None).unwrap();
+        let s =
+            scan_from_pcd(cloud(Some([1.0, 2.0, 3.0, 0.0, 0.0, 0.0, 1.0])), PointFrame::World, None).unwrap();
         assert_eq!(s.points_world, vec![[1.0, 0.0, 0.0]]);
         assert_eq!(s.origin_world, [1.0, 2.0, 3.0]);
     }
@@ -82,7 +87,8 @@ mod tests {
     #[test]
     fn sensor_frame_rotates_then_translates() {
         let h = std::f64::consts::FRAC_1_SQRT_2; // 90° about z
-        let s = scan_from_pcd(cloud(Some([1.0, 2.0, 3.0, h, 0.0, 0.0, h])), PointFrame::Sensor, None).unwrap();
+        let s =
+            scan_from_pcd(cloud(Some([1.0, 2.0, 3.0, h, 0.0, 0.0, h])), PointFrame::Sensor, None).unwrap();
         let p = s.points_world[0];
         assert!((p[0] - 1.0).abs() < 1e-6 && (p[1] - 3.0).abs() < 1e-6 && (p[2] - 3.0).abs() < 1e-6, "{p:?}");
     }

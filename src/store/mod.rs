@@ -45,8 +45,8 @@
 //! leaves a half-written map. (The scan journal and in-place incremental updates of a later
 //! format version add tables; readers of version 1 refuse those files by version.)
 
-use crate::core::key::{BLOCK_CELLS, BLOCK_EDGE, BlockKey};
 use crate::core::kernel::FIXED_SHIFT;
+use crate::core::key::{BLOCK_CELLS, BLOCK_EDGE, BlockKey};
 use crate::core::{EvidenceMap, MapParams};
 use rusqlite::{Connection, OpenFlags, OptionalExtension, params};
 use std::path::{Path, PathBuf};
@@ -64,7 +64,9 @@ pub const APPLICATION_ID: i64 = 0x4247_4B4D;
 pub enum StoreError {
     #[error("{path}: not a bgkmap map file ({reason})")]
     NotAMap { path: PathBuf, reason: String },
-    #[error("{path}: map file format version {found} is not supported (this build reads version {FORMAT_VERSION})")]
+    #[error(
+        "{path}: map file format version {found} is not supported (this build reads version {FORMAT_VERSION})"
+    )]
     Version { path: PathBuf, found: i64 },
     #[error("{path}: block ({x}, {y}, {z}) is corrupt: {reason}")]
     CorruptBlock { path: PathBuf, x: i32, y: i32, z: i32, reason: String },
@@ -127,8 +129,9 @@ fn write_new(path: &Path, map: &EvidenceMap) -> Result<(), StoreError> {
         for (k, v) in map.params().to_pairs() {
             p.execute(params![k, v]).map_err(&e)?;
         }
-        let mut ins =
-            tx.prepare("INSERT INTO blocks (bx, by, bz, data, crc32) VALUES (?1, ?2, ?3, ?4, ?5)").map_err(&e)?;
+        let mut ins = tx
+            .prepare("INSERT INTO blocks (bx, by, bz, data, crc32) VALUES (?1, ?2, ?3, ?4, ?5)")
+            .map_err(&e)?;
         let mut buf = Vec::new();
         for key in map.block_keys_sorted() {
             let Some(block) = map.block(key) else { continue };
@@ -148,10 +151,12 @@ fn open_checked(path: &Path) -> Result<Connection, StoreError> {
         return Err(StoreError::Io { path: path.to_path_buf(), source });
     }
     let not_a_map = |reason: String| StoreError::NotAMap { path: path.to_path_buf(), reason };
-    let conn = Connection::open_with_flags(path, OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX)
+    let conn =
+        Connection::open_with_flags(path, OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX)
+            .map_err(|err| not_a_map(err.to_string()))?;
+    let app: i64 = conn
+        .query_row("PRAGMA application_id", [], |r| r.get(0))
         .map_err(|err| not_a_map(err.to_string()))?;
-    let app: i64 =
-        conn.query_row("PRAGMA application_id", [], |r| r.get(0)).map_err(|err| not_a_map(err.to_string()))?;
     if app != APPLICATION_ID {
         return Err(not_a_map(format!("application_id is {app:#x}, expected {APPLICATION_ID:#x}")));
     }
@@ -170,8 +175,11 @@ pub fn load_params(path: &Path) -> Result<MapParams, StoreError> {
 fn read_params(conn: &Connection, path: &Path) -> Result<MapParams, StoreError> {
     let e = sql(path);
     let mut stmt = conn.prepare("SELECT name, value FROM params").map_err(&e)?;
-    let pairs: Vec<(String, String)> =
-        stmt.query_map([], |r| Ok((r.get(0)?, r.get(1)?))).map_err(&e)?.collect::<Result<_, _>>().map_err(&e)?;
+    let pairs: Vec<(String, String)> = stmt
+        .query_map([], |r| Ok((r.get(0)?, r.get(1)?)))
+        .map_err(&e)?
+        .collect::<Result<_, _>>()
+        .map_err(&e)?;
     MapParams::from_pairs(pairs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
         .map_err(|err| StoreError::Params { path: path.to_path_buf(), reason: err.to_string() })
 }
@@ -180,8 +188,10 @@ fn read_params(conn: &Connection, path: &Path) -> Result<MapParams, StoreError> 
 pub fn load_map(path: &Path) -> Result<EvidenceMap, StoreError> {
     let conn = open_checked(path)?;
     let e = sql(path);
-    let edge: Option<String> =
-        conn.query_row("SELECT value FROM meta WHERE key = 'block_edge'", [], |r| r.get(0)).optional().map_err(&e)?;
+    let edge: Option<String> = conn
+        .query_row("SELECT value FROM meta WHERE key = 'block_edge'", [], |r| r.get(0))
+        .optional()
+        .map_err(&e)?;
     if edge.as_deref() != Some(&BLOCK_EDGE.to_string()) {
         return Err(StoreError::NotAMap { path: path.to_path_buf(), reason: format!("block_edge {edge:?}") });
     }
@@ -192,7 +202,13 @@ pub fn load_map(path: &Path) -> Result<EvidenceMap, StoreError> {
         let key = BlockKey::new(row.get(0).map_err(&e)?, row.get(1).map_err(&e)?, row.get(2).map_err(&e)?);
         let data: Vec<u8> = row.get(3).map_err(&e)?;
         let crc: i64 = row.get(4).map_err(&e)?;
-        let corrupt = |reason: String| StoreError::CorruptBlock { path: path.to_path_buf(), x: key.x, y: key.y, z: key.z, reason };
+        let corrupt = |reason: String| StoreError::CorruptBlock {
+            path: path.to_path_buf(),
+            x: key.x,
+            y: key.y,
+            z: key.z,
+            reason,
+        };
         if i64::from(crc32fast::hash(&data)) != crc {
             return Err(corrupt("checksum mismatch".into()));
         }

@@ -1,11 +1,12 @@
 use super::*;
-use crate::core::evidence::BlockEvidence;
 use crate::core::Integrator;
+use crate::core::evidence::BlockEvidence;
 
 fn small_map() -> EvidenceMap {
     let params = MapParams { max_range_m: 5.0, ..Default::default() };
     let mut map = EvidenceMap::new(params);
-    let pts: Vec<[f32; 3]> = (0..200).map(|i| [2.0 + (i % 20) as f32 * 0.05, -1.0 + (i / 20) as f32 * 0.1, 0.5]).collect();
+    let pts: Vec<[f32; 3]> =
+        (0..200).map(|i| [2.0 + (i % 20) as f32 * 0.05, -1.0 + (i / 20) as f32 * 0.1, 0.5]).collect();
     Integrator::new(params).integrate(&mut map, &pts, [0.0, 0.0, 0.3], 1);
     map
 }
@@ -73,12 +74,21 @@ fn corrupt_block_is_reported_with_its_key() {
     save_map(&path, &small_map()).unwrap();
     Connection::open(&path)
         .unwrap()
-        .execute_batch("UPDATE blocks SET data = zeroblob(70) WHERE rowid IN (SELECT rowid FROM blocks LIMIT 1)")
+        .execute_batch(
+            "UPDATE blocks SET data = zeroblob(70) WHERE rowid IN (SELECT rowid FROM blocks LIMIT 1)",
+        )
         .unwrap_or_else(|_| {
             let c = Connection::open(&path).unwrap();
-            let (x, y, z): (i32, i32, i32) =
-                c.query_row("SELECT bx, by, bz FROM blocks LIMIT 1", [], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?))).unwrap();
-            c.execute("UPDATE blocks SET data = X'01' WHERE bx = ?1 AND by = ?2 AND bz = ?3", params![x, y, z]).unwrap();
+            let (x, y, z): (i32, i32, i32) = c
+                .query_row("SELECT bx, by, bz FROM blocks LIMIT 1", [], |r| {
+                    Ok((r.get(0)?, r.get(1)?, r.get(2)?))
+                })
+                .unwrap();
+            c.execute(
+                "UPDATE blocks SET data = X'01' WHERE bx = ?1 AND by = ?2 AND bz = ?3",
+                params![x, y, z],
+            )
+            .unwrap();
         });
     let err = load_map(&path).unwrap_err();
     assert!(matches!(err, StoreError::CorruptBlock { .. }), "{err}");

@@ -65,7 +65,23 @@ where
 {
     let args = strings(args);
     let out = run(dir, &args);
-    let text = describe(&args, &out);
+    check_fail(&args, &out, needles)
+}
+
+/// Like [`run_fail`], and also checks the exit code (1: runtime error, 2: usage error).
+pub fn run_fail_code<I, S>(dir: &Path, args: I, code: i32, needles: &[&str]) -> String
+where
+    I: IntoIterator<Item = S>,
+    S: AsRef<OsStr>,
+{
+    let args = strings(args);
+    let out = run(dir, &args);
+    assert_eq!(out.status.code(), Some(code), "unexpected exit code:\n{}", describe(&args, &out));
+    check_fail(&args, &out, needles)
+}
+
+fn check_fail(args: &[String], out: &Output, needles: &[&str]) -> String {
+    let text = describe(args, out);
     assert!(!out.status.success(), "expected failure:\n{text}");
     assert!(out.status.code().is_some(), "killed by a signal:\n{text}");
     let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
@@ -75,18 +91,6 @@ where
         assert!(lower.contains(&n.to_lowercase()), "stderr lacks {n:?}:\n{text}");
     }
     stderr
-}
-
-/// Like [`run_fail`], and also checks the exit code.
-pub fn run_fail_code<I, S>(dir: &Path, args: I, code: i32, needles: &[&str]) -> String
-where
-    I: IntoIterator<Item = S>,
-    S: AsRef<OsStr>,
-{
-    let args = strings(args);
-    let out = run(dir, &args);
-    assert_eq!(out.status.code(), Some(code), "unexpected exit code:\n{}", describe(&args, &out));
-    run_fail(dir, &args, needles)
 }
 
 /// Asserts that a failed command left nothing behind: `out` does not exist and `dir` holds no
@@ -153,7 +157,10 @@ pub fn json_number(json: &str, key: &str) -> f64 {
     let start = json.find(&pat).unwrap_or_else(|| panic!("no key {key:?} in {json}")) + pat.len();
     let rest = json[start..].trim_start();
     let end = rest.find([',', '}', ']']).unwrap_or(rest.len());
-    rest[..end].trim().parse().unwrap_or_else(|e| panic!("{key}: {:?} is not a number ({e}) in {json}", &rest[..end]))
+    rest[..end]
+        .trim()
+        .parse()
+        .unwrap_or_else(|e| panic!("{key}: {:?} is not a number ({e}) in {json}", &rest[..end]))
 }
 
 /// One CSV row of `export --format csv`.
@@ -182,7 +189,10 @@ pub fn parse_csv(csv: &str) -> Vec<(CsvRow, &str)> {
     assert_eq!(lines.next(), Some(CSV_HEADER));
     lines
         .map(|line| {
-            let v: Vec<f64> = line.split(',').map(|t| t.parse().unwrap_or_else(|_| panic!("bad CSV line {line:?}"))).collect();
+            let v: Vec<f64> = line
+                .split(',')
+                .map(|t| t.parse().unwrap_or_else(|_| panic!("bad CSV line {line:?}")))
+                .collect();
             assert_eq!(v.len(), 6, "bad CSV line {line:?}");
             (CsvRow { x: v[0], y: v[1], z: v[2], size: v[3], probability: v[4], variance: v[5] }, line)
         })

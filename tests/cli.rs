@@ -1,0 +1,214 @@
+#![allow(clippy::unwrap_used)]
+//! Acceptance tests of the `bgkmap` command line on simulated data (always run): exactness of
+//! build order / threads / merge, the export formats, eval, bench and demo.
+
+mod common;
+
+use bgkmap::io::octomap::read_bt;
+use common::{build, export_csv, json_number, parse_csv, run_ok, run_ok_text, simulate};
+use std::collections::BTreeSet;
+
+/// Evidence is a sum, so integration order, splitting into maps + merge, and threads must give
+/// bit-identical maps; the CSV export (full f64 precision) shows any difference.
+#[test]
+fn order_threads_and_merge_are_exact_on_simulated_scans() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let sim = simulate(dir, 8);
+    let reversed: Vec<String> = sim.scans.iter().rev().cloned().collect();
+
+    build(dir, "order.bgkmap", &[], &sim.scans);
+    build(dir, "reverse.bgkmap", &[], &reversed);
+    build(dir, "first.bgkmap", &[], &sim.scans[..4]);
+    build(dir, "last.bgkmap", &[], &sim.scans[4..]);
+    build(dir, "threads.bgkmap", &["--threads", "2"], &sim.scans);
+    run_ok(dir, ["merge", "first.bgkmap", "last.bgkmap", "--out", "merged.bgkmap"]);
+    run_ok(dir, ["merge", "last.bgkmap", "first.bgkmap", "--out", "merged_rev.bgkmap"]);
+
+    let order = export_csv(dir, "order.bgkmap");
+    let rows = parse_csv(&order);
+    assert!(rows.len() > 1000, "only {} cells with evidence", rows.len());
+    // Non-trivial: the map knows both occupied and free space.
+    assert!(rows.iter().any(|(r, _)| r.probability > 0.7));
+    assert!(rows.iter().any(|(r, _)| r.probability < 0.3));
+    // Sorted by key, no duplicates.
+    let keys: Vec<[i32; 3]> = rows.iter().map(|(r, _)| r.key()).collect();
+    assert!(keys.windows(2).all(|w| w[0] < w[1]), "CSV rows are not sorted by (x, y, z) key");
+
+    for other in ["reverse.bgkmap", "merged.bgkmap", "merged_rev.bgkmap", "threads.bgkmap"] {
+        let csv = export_csv(dir, other);
+        assert!(csv == order, "{other}: CSV differs from the in-order build");
+    }
+}
+
+#[test]
+fn export_formats_bt_ply_box_and_out() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let sim = simulate(dir, 4);
+    build(dir, "map.bgkmap", &[], &sim.scans);
+    let csv = export_csv(dir, "map.bgkmap");
+    let rows = parse_csv(&csv);
+    assert!(rows.len() > 1000);
+
+    // --out writes the same bytes as stdout.
+    run_ok(dir, ["export", "map.bgkmap", "--format", "csv", "--out", "map.csv"]);
+    assert!(std::fs::read(dir.join("map.csv")).unwrap() == csv.as_bytes(), "--out CSV differs from stdout");
+
+    // .bt: resolution 0.1, and its labels follow the state rule (defaults p_occ 0.7, p_free 0.3).
+    let bt_stdout = run_ok(dir, ["export", "map.bgkmap", "--format", "bt"]);
+    run_ok(dir, ["export", "map.bgkmap", "--format", "bt", "--out", "map.bt"]);
+    let bt_bytes = std::fs::read(dir.join("map.bt")).unwrap();
+    assert!(bt_bytes == bt_stdout, "--out .bt differs from stdout");
+    let tree = read_bt(&bt_bytes).unwrap();
+    assert!((tree.resolution - 0.1).abs() < 1e-12, "resolution {}", tree.resolution);
+    assert!(tree.occupied_leaves() > 0);
+    let prob: std::collections::HashMap<[i32; 3], f64> =
+        rows.iter().map(|(r, _)| (r.key(), r.probability)).collect();
+    let mut bt_occupied = BTreeSet::new();
+    let mut bt_free = 0usize;
+    for (cell, occupied) in tree.cells() {
+        let key = [cell.x, cell.y, cell.z];
+        let p = *prob.get(&key).unwrap_or_else(|| panic!(".bt cell {key:?} has no evidence in the CSV"));
+        if occupied {
+            assert!(p > 0.7, "occupied .bt cell {key:?} has p = {p}");
+            bt_occupied.insert(key);
+        } else {
+            assert!(p < 0.3, "free .bt cell {key:?} has p = {p}");
+            bt_free += 1;
+        }
+    }
+    assert!(bt_free > 0, "the .bt has no free cells");
+    let csv_occupied: BTreeSet<[i32; 3]> =
+        rows.iter().filter(|(r, _)| r.probability > 0.7).map(|(r, _)| r.key()).collect();
+    assert!(bt_occupied == csv_occupied, "occupied cells of the .bt and the CSV differ");
+
+    // PLY: binary little-endian, one vertex per occupied cell.
+    let ply = run_ok(dir, ["export", "map.bgkmap", "--format", "ply"]);
+    assert!(
+        ply.starts_with(b"ply\nformat binary_little_endian 1.0\n"),
+        "PLY header: {:?}",
+        &ply[..40.min(ply.len())]
+    );
+    let header_end = ply.windows(11).position(|w| w == b"end_header\n").unwrap();
+    let header = std::str::from_utf8(&ply[..header_end]).unwrap();
+    let vertices: usize = header
+        .lines()
+        .find_map(|l| l.strip_prefix("element vertex "))
+        .unwrap_or_else(|| panic!("no vertex element in {header}"))
+        .parse()
+        .unwrap();
+    assert_eq!(vertices, csv_occupied.len());
+    run_ok(dir, ["export", "map.bgkmap", "--format", "ply", "--out", "map.ply"]);
+    assert!(std::fs::read(dir.join("map.ply")).unwrap() == ply, "--out PLY differs from stdout");
+
+    // --box: exactly the full export's rows whose cell lies in the cells spanned by the box
+    // corners (boundary cells included); a negative minimum checks hyphen values and floor().
+    let (min, max) = ([-0.27, 0.47, 0.21], [1.52, 1.26, 0.88]);
+    let arg = format!("{},{},{},{},{},{}", min[0], min[1], min[2], max[0], max[1], max[2]);
+    let boxed = run_ok_text(dir, ["export", "map.bgkmap", "--format", "csv", "--box", &arg]);
+    let lo = min.map(|v: f64| (v / 0.1).floor() as i32);
+    let hi = max.map(|v: f64| (v / 0.1).floor() as i32);
+    let inside = |k: [i32; 3]| (0..3).all(|i| lo[i] <= k[i] && k[i] <= hi[i]);
+    let boxed_rows = parse_csv(&boxed);
+    assert!(boxed_rows.len() > 10, "box export has only {} rows", boxed_rows.len());
+    for (r, line) in &boxed_rows {
+        for (i, c) in [r.x, r.y, r.z].into_iter().enumerate() {
+            assert!(
+                c >= min[i] - 0.05 - 1e-9 && c <= max[i] + 0.05 + 1e-9,
+                "row {line:?} is outside the box"
+            );
+        }
+        assert!(inside(r.key()), "row {line:?} is outside the box's cells");
+    }
+    let expected: Vec<&str> = rows.iter().filter(|(r, _)| inside(r.key())).map(|(_, l)| *l).collect();
+    let got: Vec<&str> = boxed_rows.iter().map(|(_, l)| *l).collect();
+    assert!(got == expected, "box export is not the full export restricted to the box");
+    assert!(got.len() < rows.len());
+    run_ok(dir, ["export", "map.bgkmap", "--format", "csv", "--box", &arg, "--out", "box.csv"]);
+    assert!(std::fs::read(dir.join("box.csv")).unwrap() == boxed.as_bytes());
+}
+
+#[test]
+fn eval_json_roc_and_accuracy_on_simulated_truth() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let sim = simulate(dir, 8);
+    build(dir, "map.bgkmap", &[], &sim.scans);
+    build(dir, "half.bgkmap", &[], &sim.scans[..4]);
+
+    let json = run_ok_text(dir, ["eval", "map.bgkmap", "--truth", &sim.truth, "--json"]);
+    let json = json.trim();
+    assert!(json.starts_with('{') && json.ends_with('}'), "not one JSON object: {json}");
+    let auc = json_number(json, "auc");
+    let auc_covered = json_number(json, "auc_covered");
+    let queries = json_number(json, "queries");
+    let occupied = json_number(json, "occupied");
+    let free = json_number(json, "free");
+    eprintln!("simulated, 8 scans: auc {auc}, auc_covered {auc_covered}, queries {queries}");
+    // Measured: auc 0.8954, auc_covered 0.9485 (seed 0, 8 scans, default parameters).
+    assert!(auc > 0.88 && auc <= 1.0, "auc {auc}");
+    assert!(auc_covered > 0.93 && auc_covered <= 1.0, "auc_covered {auc_covered}");
+    assert!(queries > 0.0 && queries == occupied + free, "queries {queries} ≠ {occupied} + {free}");
+
+    // Several maps: an array of objects; fewer scans do not do better.
+    let both = run_ok_text(dir, ["eval", "map.bgkmap", "half.bgkmap", "--truth", &sim.truth, "--json"]);
+    let both = both.trim();
+    assert!(both.starts_with('[') && both.ends_with(']'), "not a JSON array: {both}");
+    assert_eq!(both.matches("\"auc\":").count(), 2, "expected two objects: {both}");
+    let last = &both[both.rfind('{').unwrap()..];
+    assert!(last.contains("half.bgkmap"), "objects are not in argument order: {both}");
+    let half_auc = json_number(last, "auc");
+    assert!(half_auc < auc, "4 scans (auc {half_auc}) should not beat 8 scans (auc {auc})");
+
+    // --roc writes a PNG.
+    let text = run_ok_text(dir, ["eval", "map.bgkmap", "--truth", &sim.truth, "--roc", "roc.png"]);
+    assert!(text.contains("AUC"), "{text}");
+    let png = std::fs::read(dir.join("roc.png")).unwrap();
+    assert!(png.starts_with(b"\x89PNG\r\n\x1a\n"), "roc.png is not a PNG");
+    assert!(png.len() > 1000);
+}
+
+fn check_bench(json: &str, scans: f64, threads: f64) {
+    let json = json.trim();
+    assert!(json.starts_with('{') && json.ends_with('}'), "not one JSON object: {json}");
+    for key in ["per_scan_ms_median", "per_scan_ms_p90", "total_ms_median"] {
+        let v = json_number(json, key);
+        assert!(v.is_finite() && v > 0.0, "{key} = {v} in {json}");
+    }
+    assert_eq!(json_number(json, "scans"), scans, "{json}");
+    assert_eq!(json_number(json, "repeat"), 1.0, "{json}");
+    assert_eq!(json_number(json, "threads"), threads, "{json}");
+}
+
+#[test]
+fn bench_ingest_json() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    // No scans: the built-in simulated room (12 scans).
+    let json = run_ok_text(dir, ["bench", "ingest", "--repeat", "1", "--json"]);
+    check_bench(&json, 12.0, 1.0);
+
+    let sim = simulate(dir, 3);
+    let mut args: Vec<String> =
+        ["bench", "ingest", "--repeat", "1", "--threads", "2", "--json"].map(String::from).into();
+    args.extend(sim.scans.iter().cloned());
+    let json = run_ok_text(dir, &args);
+    check_bench(&json, 3.0, 2.0);
+}
+
+#[test]
+fn demo_builds_and_evaluates() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let out = common::run(dir, ["demo", "--dir", "demo"]);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "demo failed:\n{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
+    assert!(stdout.contains("AUC"), "demo output lacks AUC:\n{stdout}");
+    for f in ["demo.bgkmap", "truth.bt"] {
+        assert!(dir.join("demo").join(f).is_file(), "demo did not write {f}");
+    }
+    // The demo's map is a real map file.
+    let csv = export_csv(dir, "demo/demo.bgkmap");
+    assert!(parse_csv(&csv).len() > 1000);
+}

@@ -1,0 +1,33 @@
+#!/usr/bin/env bash
+# Runs every check and test of bgkmap from a fresh checkout: formatting, lints, docs, the pure
+# core without optional features, then the whole suite (unit, property and integration tests,
+# which start the real binary). Installs nothing system-wide; needs the Rust toolchain with
+# clippy, rustfmt and cargo-nextest (falls back to `cargo test` without nextest).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+# Reuse one build directory outside the clone, so a fresh clone on the same machine starts warm.
+export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-${HOME:-/tmp}/.cache/bgkmap/target}"
+export CARGO_TERM_COLOR="${CARGO_TERM_COLOR:-never}"
+mkdir -p "$CARGO_TARGET_DIR"
+
+step() { printf '\n== %s\n' "$*"; }
+
+step "format"
+cargo fmt --all --check
+
+step "lints (clippy -D warnings)"
+cargo clippy --locked --all-targets -- -D warnings
+
+step "docs (warnings are errors)"
+RUSTDOCFLAGS="-D warnings" cargo doc --locked --no-deps --quiet
+
+step "pure core: library tests without optional features"
+cargo test --locked --lib --no-default-features --quiet
+
+step "all tests"
+if cargo nextest --version >/dev/null 2>&1; then
+  cargo nextest run --locked --no-fail-fast
+else
+  cargo test --locked --no-fail-fast
+fi
