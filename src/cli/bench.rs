@@ -28,6 +28,9 @@ pub struct IngestArgs {
     /// Maximum range (m); 0 = unlimited.
     #[arg(long, default_value_t = 8.0)]
     pub max_range: f64,
+    /// Hits beyond max range: `truncate` (default) or `drop` (la3dm's work, for comparison).
+    #[arg(long, default_value = "truncate")]
+    pub range_mode: crate::core::RangeMode,
     /// Print one JSON object.
     #[arg(long)]
     pub json: bool,
@@ -53,28 +56,49 @@ fn ingest(a: IngestArgs) -> Result<()> {
         let scans = a.scans.iter().map(|p| load_scan(p, &a.scan)).collect::<Result<Vec<_>>>()?;
         (scans, format!("{} PCD files", a.scans.len()))
     };
-    let params = MapParams { max_range_m: a.max_range, ..Default::default() };
+    let params = MapParams { max_range_m: a.max_range, range_mode: a.range_mode, ..Default::default() };
     params.validate()?;
     let threads = a.threads.max(1);
     let mut integrator = Integrator::new(params);
     let mut per_scan_ms = Vec::new();
     let mut totals_ms = Vec::new();
+    // Where the time goes, per scan: training data, evidence scatter, map update.
+    let mut phases_ms: [Vec<f64>; 3] = Default::default();
+    let mut pairs_in = (0usize, 0usize);
     for pass in 0..=a.repeat.max(1) {
         let mut map = EvidenceMap::new(params);
         let mut total = 0.0;
         for s in &scans {
             let t0 = Instant::now();
-            integrator.integrate(&mut map, &s.points_world, s.origin_world, threads);
-            let ms = t0.elapsed().as_secs_f64() * 1e3;
+            let n_train = integrator.training(&s.points_world, s.origin_world).len();
+            let t1 = Instant::now();
+            let delta = integrator.training_delta(threads);
+            let t2 = Instant::now();
+            map.apply(&delta, 1);
+            let t3 = Instant::now();
+            integrator.recycle(delta);
+            let ms = (t3 - t0).as_secs_f64() * 1e3;
             total += ms;
             if pass > 0 {
                 per_scan_ms.push(ms);
+                for (v, d) in phases_ms.iter_mut().zip([t1 - t0, t2 - t1, t3 - t2]) {
+                    v.push(d.as_secs_f64() * 1e3);
+                }
+                pairs_in.0 += n_train;
+                pairs_in.1 += 1;
             }
         }
         if pass > 0 {
             totals_ms.push(total);
         }
     }
+    let [mut train_ms, mut scatter_ms, mut apply_ms] = phases_ms;
+    let phase = [
+        percentile(&mut train_ms, 0.5),
+        percentile(&mut scatter_ms, 0.5),
+        percentile(&mut apply_ms, 0.5),
+    ];
+    let training_points_mean = pairs_in.0 as f64 / pairs_in.1.max(1) as f64;
     let points: usize = scans.iter().map(|s| s.points_world.len()).sum();
     let med = percentile(&mut per_scan_ms, 0.5);
     let p90 = percentile(&mut per_scan_ms, 0.9);
@@ -86,15 +110,22 @@ fn ingest(a: IngestArgs) -> Result<()> {
             "threads": threads, "max_range": a.max_range,
             "per_scan_ms_median": med, "per_scan_ms_p90": p90, "total_ms_median": total_med,
             "raw_points": points, "points_per_s": points_per_s,
+            "range_mode": params.range_mode.as_str(),
+            "training_points_per_scan_mean": training_points_mean,
+            "phase_ms_median": {"training": phase[0], "evidence": phase[1], "map_update": phase[2]},
         });
         println!("{v}");
     } else {
         println!(
             "ingest {source}: {} scans × {} passes, {threads} thread(s): per scan median {med:.3} ms, p90 {p90:.3} ms; \
-             all scans median {total_med:.2} ms ({:.2} M raw points/s)",
+             all scans median {total_med:.2} ms ({:.2} M raw points/s); per-scan medians: training {:.3} ms, \
+             evidence {:.3} ms, map update {:.3} ms ({training_points_mean:.0} training points per scan)",
             scans.len(),
             a.repeat.max(1),
-            points_per_s / 1e6
+            points_per_s / 1e6,
+            phase[0],
+            phase[1],
+            phase[2]
         );
     }
     Ok(())

@@ -222,6 +222,11 @@ impl Integrator {
         threads: usize,
     ) -> ScanDelta {
         self.training.build_into(points_world, origin_world, &self.params, &mut self.set);
+        self.training_delta(threads)
+    }
+
+    /// The evidence of the training set built by the last [`Self::training`] call.
+    pub fn training_delta(&mut self, threads: usize) -> ScanDelta {
         if threads <= 1 {
             return self.scatter.delta(&self.set, &self.geometry, &self.table);
         }
@@ -241,6 +246,11 @@ impl Integrator {
                 .collect::<Vec<_>>()
         });
         ScanDelta::sum(parts)
+    }
+
+    /// Returns a delta's block buffers for reuse by later scans.
+    pub fn recycle(&mut self, delta: ScanDelta) {
+        self.scatter.recycle(delta);
     }
 
     /// Integrates one scan into `map` and returns the number of blocks it touched.

@@ -136,12 +136,19 @@ impl Scatter {
                 continue;
             }
             let block = self.grid_block_of_slot(s);
+            // Map cells the bucket's stencils reach: its points' cells ± R.
+            let (mut lo, mut hi) = ([i32::MAX; 3], [i32::MIN; 3]);
             for k in start..end {
                 let (p, hit) = pts[self.order[k] as usize];
+                let (c, _) = split_point(p);
+                for i in 0..3 {
+                    lo[i] = lo[i].min(c[i] - r);
+                    hi[i] = hi[i].max(c[i] + r);
+                }
                 let brick = if hit { &mut self.brick_a } else { &mut self.brick_b };
                 scatter_point(brick, w, block, p, r, geo, table);
             }
-            self.flush_brick(block, r, w);
+            self.flush_brick(block, r, w, (lo, hi));
         }
         let mut blocks = std::mem::take(&mut self.delta.blocks);
         // A block reached only by pairs whose mass rounds to 0 holds nothing: drop it.
@@ -182,53 +189,43 @@ impl Scatter {
         }
     }
 
-    /// Adds the brick around `block` into the delta blocks and zeroes it.
-    fn flush_brick(&mut self, block: [i32; 3], r: i32, w: usize) {
+    /// Adds the touched region `(lo, hi)` (map cells) of the brick around `block` into the delta
+    /// blocks, and zeroes that region.
+    fn flush_brick(&mut self, block: [i32; 3], r: i32, w: usize, (lo, hi): ([i32; 3], [i32; 3])) {
         // Brick cell (i, j, k) is map cell block·B − R + (i, j, k).
         let origin = block.map(|b| b * B - r);
-        let span = |o: i32| (o >> BLOCK_SHIFT)..=((o + w as i32 - 1) >> BLOCK_SHIFT);
-        for bz in span(origin[2]) {
-            for by in span(origin[1]) {
-                for bx in span(origin[0]) {
-                    self.flush_into([bx, by, bz], origin, w);
+        let index = move |x: i32, y: i32, z: i32| {
+            (((z - origin[2]) as usize * w) + (y - origin[1]) as usize) * w + (x - origin[0]) as usize
+        };
+        let n = (hi[0] - lo[0] + 1) as usize;
+        for bz in (lo[2] >> BLOCK_SHIFT)..=(hi[2] >> BLOCK_SHIFT) {
+            for by in (lo[1] >> BLOCK_SHIFT)..=(hi[1] >> BLOCK_SHIFT) {
+                for bx in (lo[0] >> BLOCK_SHIFT)..=(hi[0] >> BLOCK_SHIFT) {
+                    let b = [bx, by, bz];
+                    let from = [0, 1, 2].map(|i| (b[i] * B).max(lo[i]));
+                    let to = [0, 1, 2].map(|i| (b[i] * B + B - 1).min(hi[i]));
+                    let m = (to[0] - from[0] + 1) as usize;
+                    let dst = self.delta.block_mut(b, &mut self.spare);
+                    for z in from[2]..=to[2] {
+                        for y in from[1]..=to[1] {
+                            let i0 = index(from[0], y, z);
+                            let d0 = CellKey::new(from[0], y, z).index_in_block();
+                            for (d, s) in dst.a[d0..d0 + m].iter_mut().zip(&self.brick_a[i0..i0 + m]) {
+                                *d += s;
+                            }
+                            for (d, s) in dst.b[d0..d0 + m].iter_mut().zip(&self.brick_b[i0..i0 + m]) {
+                                *d += s;
+                            }
+                        }
+                    }
                 }
             }
         }
-        self.brick_a.fill(0);
-        self.brick_b.fill(0);
-    }
-
-    /// Adds the part of the brick that overlaps block `b` into that delta block.
-    fn flush_into(&mut self, b: [i32; 3], origin: [i32; 3], w: usize) {
-        // Overlap in map cells, then in brick and block coordinates.
-        let lo = [0, 1, 2].map(|i| (b[i] * B).max(origin[i]));
-        let hi = [0, 1, 2].map(|i| (b[i] * B + B - 1).min(origin[i] + w as i32 - 1));
-        let brick_index = |x: i32, y: i32, z: i32| {
-            (((z - origin[2]) as usize * w) + (y - origin[1]) as usize) * w + (x - origin[0]) as usize
-        };
-        let any = (lo[2]..=hi[2]).any(|z| {
-            (lo[1]..=hi[1]).any(|y| {
-                let i0 = brick_index(lo[0], y, z);
-                let n = (hi[0] - lo[0] + 1) as usize;
-                self.brick_a[i0..i0 + n].iter().chain(&self.brick_b[i0..i0 + n]).any(|&v| v != 0)
-            })
-        });
-        if !any {
-            return;
-        }
-        let (bricks_a, bricks_b) = (&self.brick_a, &self.brick_b);
-        let dst = self.delta.block_mut(b, &mut self.spare);
-        let n = (hi[0] - lo[0] + 1) as usize;
         for z in lo[2]..=hi[2] {
             for y in lo[1]..=hi[1] {
-                let i0 = brick_index(lo[0], y, z);
-                let d0 = CellKey::new(lo[0], y, z).index_in_block();
-                for (d, s) in dst.a[d0..d0 + n].iter_mut().zip(&bricks_a[i0..i0 + n]) {
-                    *d += s;
-                }
-                for (d, s) in dst.b[d0..d0 + n].iter_mut().zip(&bricks_b[i0..i0 + n]) {
-                    *d += s;
-                }
+                let i0 = index(lo[0], y, z);
+                self.brick_a[i0..i0 + n].fill(0);
+                self.brick_b[i0..i0 + n].fill(0);
             }
         }
     }

@@ -16,7 +16,6 @@
 //! training set, bit for bit.
 
 use super::params::{MapParams, RangeMode};
-use rustc_hash::FxHashMap;
 
 /// Labelled training points of one scan, in world metres.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -25,7 +24,7 @@ pub struct TrainingSet {
     pub hits: Vec<[f64; 3]>,
     /// Downsampled free-space samples (label 0).
     pub frees: Vec<[f64; 3]>,
-    /// Input points that were not finite or lay outside the key range.
+    /// Input points that were not finite or lay farther than 2^20 voxels from the origin.
     pub dropped_points: usize,
     /// Hit voxels before the range test.
     pub hit_voxels: usize,
@@ -44,32 +43,75 @@ impl TrainingSet {
 }
 
 /// Reusable voxel-centroid accumulator (keeps its allocations between scans).
+///
+/// Voxels are found through an open-addressing table keyed by the packed voxel key (linear
+/// probing, multiplicative hash): cheaper than a general hash map for the ~30k lookups a scan
+/// makes. Voxel keys must lie within ±2^20 per axis (±100 km at 0.1 m).
 #[derive(Debug, Default)]
 pub struct VoxelCentroids {
-    index: FxHashMap<[i32; 3], u32>,
+    /// Slot → index into `sums` + 1 (0 = empty).
+    slots: Vec<u32>,
+    keys: Vec<u64>,
     sums: Vec<([f64; 3], u32)>,
 }
 
+const KEY_BITS: u32 = 21;
+const KEY_LIMIT: f64 = (1u64 << (KEY_BITS - 1)) as f64;
+
 impl VoxelCentroids {
     fn clear(&mut self) {
-        self.index.clear();
+        // Empty the occupied slots only (their number is the number of voxels).
+        let mask = self.slots.len().wrapping_sub(1);
+        for &k in &self.keys {
+            let mut i = slot_of(k, mask);
+            while self.slots[i] != 0 {
+                self.slots[i] = 0;
+                i = (i + 1) & mask;
+            }
+        }
+        self.keys.clear();
         self.sums.clear();
     }
 
-    /// Adds a point; returns false if its voxel key does not fit in i32.
+    /// Adds a point; returns false if its voxel key is outside the packable range.
     #[inline]
     fn add(&mut self, p: [f64; 3], inv_ds: f64) -> bool {
         let Some(key) = voxel_key(p, inv_ds) else { return false };
-        let next = self.sums.len() as u32;
-        let slot = *self.index.entry(key).or_insert(next);
-        if slot == next {
-            self.sums.push((p, 1));
-        } else {
-            let s = &mut self.sums[slot as usize];
-            s.0 = [s.0[0] + p[0], s.0[1] + p[1], s.0[2] + p[2]];
-            s.1 += 1;
+        if 2 * (self.sums.len() + 1) > self.slots.len() {
+            self.grow();
         }
-        true
+        let mask = self.slots.len() - 1;
+        let mut i = slot_of(key, mask);
+        loop {
+            let s = self.slots[i];
+            if s == 0 {
+                self.slots[i] = self.sums.len() as u32 + 1;
+                self.keys.push(key);
+                self.sums.push((p, 1));
+                return true;
+            }
+            if self.keys[s as usize - 1] == key {
+                let e = &mut self.sums[s as usize - 1];
+                e.0 = [e.0[0] + p[0], e.0[1] + p[1], e.0[2] + p[2]];
+                e.1 += 1;
+                return true;
+            }
+            i = (i + 1) & mask;
+        }
+    }
+
+    fn grow(&mut self) {
+        let cap = (self.slots.len() * 2).max(1024);
+        self.slots.clear();
+        self.slots.resize(cap, 0);
+        let mask = cap - 1;
+        for (n, &k) in self.keys.iter().enumerate() {
+            let mut i = slot_of(k, mask);
+            while self.slots[i] != 0 {
+                i = (i + 1) & mask;
+            }
+            self.slots[i] = n as u32 + 1;
+        }
     }
 
     fn centroids_into(&self, out: &mut Vec<[f64; 3]>) {
@@ -81,13 +123,23 @@ impl VoxelCentroids {
     }
 }
 
+#[inline(always)]
+fn slot_of(key: u64, mask: usize) -> usize {
+    (key.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 32) as usize & mask
+}
+
+/// The voxel `floor(p / ds)` packed as three 21-bit fields, or `None` outside ±2^20 voxels.
 #[inline]
-fn voxel_key(p: [f64; 3], inv_ds: f64) -> Option<[i32; 3]> {
-    let k = |v: f64| {
+fn voxel_key(p: [f64; 3], inv_ds: f64) -> Option<u64> {
+    let mut key = 0u64;
+    for v in p {
         let f = (v * inv_ds).floor();
-        (-1.0e9..=1.0e9).contains(&f).then_some(f as i32)
-    };
-    Some([k(p[0])?, k(p[1])?, k(p[2])?])
+        if !(f >= -KEY_LIMIT && f < KEY_LIMIT) {
+            return None;
+        }
+        key = (key << KEY_BITS) | ((f as i64 + KEY_LIMIT as i64) as u64);
+    }
+    Some(key)
 }
 
 /// Builds training sets; holds scratch space so repeated scans allocate nothing new.
