@@ -1,6 +1,8 @@
 #![allow(clippy::unwrap_used)]
 //! Bad input to the `bgkmap` command line: every failure exits non-zero with an `error: …` that
 //! names the problem, and leaves no output (nor a temporary sibling) behind.
+// The tests run the `bgkmap` binary, which needs the `cli` feature.
+#![cfg(feature = "cli")]
 
 mod common;
 

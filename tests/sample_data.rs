@@ -1,6 +1,8 @@
 #![allow(clippy::unwrap_used)]
 //! Acceptance tests on la3dm's `sim_structured` sample (12 PCD scans with VIEWPOINT and the
 //! ground truth `map.bt`), found at `../shared/data/la3dm/sim_structured`; skipped when absent.
+// The tests run the `bgkmap` binary, which needs the `cli` feature.
+#![cfg(feature = "cli")]
 
 mod common;
 

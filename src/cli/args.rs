@@ -11,31 +11,31 @@ use std::path::{Path, PathBuf};
 #[derive(Debug, Clone, Args)]
 pub struct ParamArgs {
     /// Cell edge (m).
-    #[arg(long, default_value_t = 0.1)]
+    #[arg(long, default_value_t = 0.1, allow_negative_numbers = true)]
     pub resolution: f64,
     /// Kernel amplitude σ0.
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = 1.0, allow_negative_numbers = true)]
     pub sf2: f64,
     /// Kernel length and support radius (m).
-    #[arg(long, default_value_t = 0.2)]
+    #[arg(long, default_value_t = 0.2, allow_negative_numbers = true)]
     pub ell: f64,
     /// Free-space sample spacing along each ray (m).
-    #[arg(long, default_value_t = 0.5)]
+    #[arg(long, default_value_t = 0.5, allow_negative_numbers = true)]
     pub free_resolution: f64,
     /// Downsampling voxel edge for hits and free samples (m).
-    #[arg(long, default_value_t = 0.1)]
+    #[arg(long, default_value_t = 0.1, allow_negative_numbers = true)]
     pub ds_resolution: f64,
     /// Maximum range (m); 0 = unlimited.
-    #[arg(long, default_value_t = 8.0)]
+    #[arg(long, default_value_t = 8.0, allow_negative_numbers = true)]
     pub max_range: f64,
     /// Hits beyond max range: `truncate` (free ray up to max range) or `drop` (la3dm).
     #[arg(long, default_value = "truncate")]
     pub range_mode: RangeMode,
     /// Prior pseudo-count α0.
-    #[arg(long, default_value_t = 0.001)]
+    #[arg(long, default_value_t = 0.001, allow_negative_numbers = true)]
     pub prior_a: f64,
     /// Prior pseudo-count β0.
-    #[arg(long, default_value_t = 0.001)]
+    #[arg(long, default_value_t = 0.001, allow_negative_numbers = true)]
     pub prior_b: f64,
     /// Do not add the sensor origin as a free sample.
     #[arg(long)]
@@ -68,13 +68,13 @@ impl ParamArgs {
 #[derive(Debug, Clone, Args)]
 pub struct ThresholdArgs {
     /// Free when p < P_FREE.
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     pub p_free: Option<f64>,
     /// Occupied when p > P_OCC.
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     pub p_occ: Option<f64>,
     /// A state needs variance < VAR_MAX.
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     pub var_max: Option<f64>,
 }
 

@@ -93,11 +93,8 @@ fn ingest(a: IngestArgs) -> Result<()> {
         }
     }
     let [mut train_ms, mut scatter_ms, mut apply_ms] = phases_ms;
-    let phase = [
-        percentile(&mut train_ms, 0.5),
-        percentile(&mut scatter_ms, 0.5),
-        percentile(&mut apply_ms, 0.5),
-    ];
+    let phase =
+        [percentile(&mut train_ms, 0.5), percentile(&mut scatter_ms, 0.5), percentile(&mut apply_ms, 0.5)];
     let training_points_mean = pairs_in.0 as f64 / pairs_in.1.max(1) as f64;
     let points: usize = scans.iter().map(|s| s.points_world.len()).sum();
     let med = percentile(&mut per_scan_ms, 0.5);

@@ -104,7 +104,7 @@ fn rows(
     Ok(rows)
 }
 
-/// Decimal places that show cell centres exactly at this resolution (0.1 → 3: "0.050").
+/// Decimal places that show cell centres exactly at this resolution (0.1 → 2: "0.05").
 fn centre_decimals(res: f64) -> usize {
     (1..=9).find(|&d| ((res / 2.0) * 10f64.powi(d)).fract().abs() < 1e-6).unwrap_or(9) as usize
 }

@@ -134,7 +134,7 @@ fn voxel_key(p: [f64; 3], inv_ds: f64) -> Option<u64> {
     let mut key = 0u64;
     for v in p {
         let f = (v * inv_ds).floor();
-        if !(f >= -KEY_LIMIT && f < KEY_LIMIT) {
+        if !(-KEY_LIMIT..KEY_LIMIT).contains(&f) {
             return None;
         }
         key = (key << KEY_BITS) | ((f as i64 + KEY_LIMIT as i64) as u64);

@@ -72,21 +72,22 @@ pub enum StoreError {
     CorruptBlock { path: PathBuf, x: i32, y: i32, z: i32, reason: String },
     #[error("{path}: bad map parameters: {reason}")]
     Params { path: PathBuf, reason: String },
-    #[error("{path}: {source}")]
-    Sqlite { path: PathBuf, source: rusqlite::Error },
-    #[error("{path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    // The cause is part of the message (not a `source`), so it is printed once.
+    #[error("{path}: {error}")]
+    Sqlite { path: PathBuf, error: rusqlite::Error },
+    #[error("{path}: {error}")]
+    Io { path: PathBuf, error: std::io::Error },
 }
 
 fn sql(path: &Path) -> impl Fn(rusqlite::Error) -> StoreError + '_ {
-    move |source| StoreError::Sqlite { path: path.to_path_buf(), source }
+    move |error| StoreError::Sqlite { path: path.to_path_buf(), error }
 }
 
 /// Writes `map` to `path` atomically (temporary file + rename). An existing file is replaced.
 pub fn save_map(path: &Path, map: &EvidenceMap) -> Result<(), StoreError> {
     let tmp = temp_sibling(path);
     let result = write_new(&tmp, map).and_then(|()| {
-        std::fs::rename(&tmp, path).map_err(|source| StoreError::Io { path: path.to_path_buf(), source })
+        std::fs::rename(&tmp, path).map_err(|error| StoreError::Io { path: path.to_path_buf(), error })
     });
     if result.is_err() {
         let _ = std::fs::remove_file(&tmp);
@@ -147,8 +148,8 @@ fn write_new(path: &Path, map: &EvidenceMap) -> Result<(), StoreError> {
 /// Opens `path` read-only, checks it is a bgkmap file of this version, and returns the connection.
 fn open_checked(path: &Path) -> Result<Connection, StoreError> {
     if !path.is_file() {
-        let source = std::io::Error::new(std::io::ErrorKind::NotFound, "no such map file");
-        return Err(StoreError::Io { path: path.to_path_buf(), source });
+        let error = std::io::Error::new(std::io::ErrorKind::NotFound, "no such map file");
+        return Err(StoreError::Io { path: path.to_path_buf(), error });
     }
     let not_a_map = |reason: String| StoreError::NotAMap { path: path.to_path_buf(), reason };
     let conn =
