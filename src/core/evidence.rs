@@ -39,13 +39,14 @@ impl BlockEvidence {
         self.a.iter().zip(&self.b).filter(|(a, b)| **a != 0 || **b != 0).count()
     }
 
-    /// `self += other` (or `-=` with `sign = -1`), wrapping never expected within i64 range.
+    /// `self += other` (`sign` ≥ 0) or `self -= other` (`sign` < 0).
     pub fn add_scaled(&mut self, other: &BlockEvidence, sign: i64) {
-        for (x, y) in self.a.iter_mut().zip(&other.a) {
-            *x += sign * y;
-        }
-        for (x, y) in self.b.iter_mut().zip(&other.b) {
-            *x += sign * y;
+        // Two plain loops (no multiply) so the compiler vectorises them.
+        let pairs = self.a.iter_mut().zip(&other.a).chain(self.b.iter_mut().zip(&other.b));
+        if sign >= 0 {
+            pairs.for_each(|(x, y)| *x += y);
+        } else {
+            pairs.for_each(|(x, y)| *x -= y);
         }
     }
 }

@@ -1,11 +1,11 @@
 //! The fast evidence path: training points → per-cell kernel sums, block by block.
 //!
 //! Points are bucketed by the block of their own cell (a counting sort over the scan's block
-//! grid). Each bucket is scattered into a dense local *brick* — the block grown by the stencil
-//! radius R on every side, `(B + 2R)³` cells, small enough to stay in L1 — with no hashing and
-//! no block lookup per pair. Per point, squared axis distances are computed once per offset;
-//! each (y, z) row inside the ball visits only the x offsets whose pair is inside the ball. The
-//! brick is then added into the scan's delta blocks.
+//! grid). A point's stencil reaches at most ⌈R/B⌉ blocks beyond its own, so each bucket keeps a
+//! small cache of its neighbour delta blocks and every row of a stencil finds its target block
+//! with a few shifts — no hashing and no grid lookup per pair. Per point, squared axis distances
+//! are computed once per offset; each (y, z) row inside the ball visits only the x offsets whose
+//! pair is inside the ball (found by counting, without branches).
 //!
 //! Every pair's value comes from [`pair_coord`](super::evidence::pair_coord)'s arithmetic and
 //! [`KernelTable::quantized_coord`], so the result equals the brute-force reference bit for bit.
@@ -31,8 +31,8 @@ pub struct Scatter {
     /// Bucket start offsets into `order` (counting sort).
     starts: Vec<u32>,
     order: Vec<u32>,
-    brick_a: Vec<i64>,
-    brick_b: Vec<i64>,
+    /// Per bucket: delta-block index of each neighbour offset ((2M+1)³ entries, M = ⌈R/B⌉).
+    neighbours: Vec<u32>,
     delta: SlotGrid,
     spare: Vec<Box<BlockEvidence>>,
     cells: Vec<CellPoint>,
@@ -61,15 +61,15 @@ impl SlotGrid {
         (o[0] + self.dims[0] * (o[1] + self.dims[1] * o[2])) as usize
     }
 
-    /// The block at key `b`, allocated (zeroed) on first use.
-    fn block_mut(&mut self, b: [i32; 3], spare: &mut Vec<Box<BlockEvidence>>) -> &mut BlockEvidence {
+    /// The index (into `blocks`) of the block at key `b`, allocated (zeroed) on first use.
+    fn block_index(&mut self, b: [i32; 3], spare: &mut Vec<Box<BlockEvidence>>) -> u32 {
         let s = self.index(b);
         if self.slots[s] == NO_SLOT {
             self.slots[s] = self.blocks.len() as u32;
             let fresh = spare.pop().unwrap_or_else(BlockEvidence::zeroed);
             self.blocks.push((BlockKey::new(b[0], b[1], b[2]), fresh));
         }
-        &mut self.blocks[self.slots[s] as usize].1
+        self.slots[s]
     }
 }
 
@@ -124,31 +124,23 @@ impl Scatter {
     ) -> ScanDelta {
         let (lo, hi) = block_bounds(pts);
         self.bucket(pts, lo, hi);
-        // Delta blocks reach R cells beyond the points' blocks: at most ⌈R/B⌉ blocks further.
+        // Delta blocks reach R cells beyond the points' blocks: at most M = ⌈R/B⌉ blocks further.
         let m = (r + B - 1) / B;
         self.delta.reset(lo.map(|v| v - m), hi.map(|v| v + m));
-        let w = (B + 2 * r) as usize;
-        self.brick_a.resize(w * w * w, 0);
-        self.brick_b.resize(w * w * w, 0);
+        let side = (2 * m + 1) as usize;
         for s in 0..self.grid.slots.len() {
             let (start, end) = (self.starts[s] as usize, self.starts[s + 1] as usize);
             if start == end {
                 continue;
             }
             let block = self.grid_block_of_slot(s);
-            // Map cells the bucket's stencils reach: its points' cells ± R.
-            let (mut lo, mut hi) = ([i32::MAX; 3], [i32::MIN; 3]);
+            self.neighbours.clear();
+            self.neighbours.resize(side * side * side, NO_SLOT);
+            let mut target = Targets { block, m, side, scatter: self };
             for k in start..end {
-                let (p, hit) = pts[self.order[k] as usize];
-                let (c, _) = split_point(p);
-                for i in 0..3 {
-                    lo[i] = lo[i].min(c[i] - r);
-                    hi[i] = hi[i].max(c[i] + r);
-                }
-                let brick = if hit { &mut self.brick_a } else { &mut self.brick_b };
-                scatter_point(brick, w, block, p, r, geo, table);
+                let (p, hit) = pts[target.scatter.order[k] as usize];
+                scatter_point(&mut target, p, hit, r, geo, table);
             }
-            self.flush_brick(block, r, w, (lo, hi));
         }
         let mut blocks = std::mem::take(&mut self.delta.blocks);
         // A block reached only by pairs whose mass rounds to 0 holds nothing: drop it.
@@ -188,66 +180,52 @@ impl Scatter {
             next[s as usize] += 1;
         }
     }
+}
 
-    /// Adds the touched region `(lo, hi)` (map cells) of the brick around `block` into the delta
-    /// blocks, and zeroes that region.
-    fn flush_brick(&mut self, block: [i32; 3], r: i32, w: usize, (lo, hi): ([i32; 3], [i32; 3])) {
-        // Brick cell (i, j, k) is map cell block·B − R + (i, j, k).
-        let origin = block.map(|b| b * B - r);
-        let index = move |x: i32, y: i32, z: i32| {
-            (((z - origin[2]) as usize * w) + (y - origin[1]) as usize) * w + (x - origin[0]) as usize
-        };
-        let n = (hi[0] - lo[0] + 1) as usize;
-        for bz in (lo[2] >> BLOCK_SHIFT)..=(hi[2] >> BLOCK_SHIFT) {
-            for by in (lo[1] >> BLOCK_SHIFT)..=(hi[1] >> BLOCK_SHIFT) {
-                for bx in (lo[0] >> BLOCK_SHIFT)..=(hi[0] >> BLOCK_SHIFT) {
-                    let b = [bx, by, bz];
-                    let from = [0, 1, 2].map(|i| (b[i] * B).max(lo[i]));
-                    let to = [0, 1, 2].map(|i| (b[i] * B + B - 1).min(hi[i]));
-                    let m = (to[0] - from[0] + 1) as usize;
-                    let dst = self.delta.block_mut(b, &mut self.spare);
-                    for z in from[2]..=to[2] {
-                        for y in from[1]..=to[1] {
-                            let i0 = index(from[0], y, z);
-                            let d0 = CellKey::new(from[0], y, z).index_in_block();
-                            for (d, s) in dst.a[d0..d0 + m].iter_mut().zip(&self.brick_a[i0..i0 + m]) {
-                                *d += s;
-                            }
-                            for (d, s) in dst.b[d0..d0 + m].iter_mut().zip(&self.brick_b[i0..i0 + m]) {
-                                *d += s;
-                            }
-                        }
-                    }
-                }
-            }
+/// The delta blocks around one bucket's block, found through the neighbour cache.
+struct Targets<'a> {
+    block: [i32; 3],
+    m: i32,
+    side: usize,
+    scatter: &'a mut Scatter,
+}
+
+impl Targets<'_> {
+    /// The 8 cells of the block row holding the cells at block offset `(ox, oy, oz)` (from the
+    /// bucket's block) and local (y, z) `(y7, z7)`: `A` for hits, `B` for frees.
+    #[inline(always)]
+    fn row(&mut self, o: [i32; 3], y7: i32, z7: i32, hit: bool) -> &mut [i64] {
+        let side = self.side as i32;
+        let ni = (((o[2] + self.m) * side + (o[1] + self.m)) * side + (o[0] + self.m)) as usize;
+        let mut idx = self.scatter.neighbours[ni];
+        if idx == NO_SLOT {
+            let key = [0, 1, 2].map(|i| self.block[i] + o[i]);
+            idx = self.scatter.delta.block_index(key, &mut self.scatter.spare);
+            self.scatter.neighbours[ni] = idx;
         }
-        for z in lo[2]..=hi[2] {
-            for y in lo[1]..=hi[1] {
-                let i0 = index(lo[0], y, z);
-                self.brick_a[i0..i0 + n].fill(0);
-                self.brick_b[i0..i0 + n].fill(0);
-            }
-        }
+        let blk = &mut self.scatter.delta.blocks[idx as usize].1;
+        let base = CellKey::new(0, y7, z7).index_in_block();
+        let cells = if hit { &mut blk.a } else { &mut blk.b };
+        &mut cells[base..base + B as usize]
     }
 }
 
-/// Adds one point's kernel mass to the brick of `block` (edge `w`, radius `r`).
+/// Adds one point's kernel mass to the delta blocks around its bucket.
 #[inline(always)]
 fn scatter_point(
-    brick: &mut [i64],
-    w: usize,
-    block: [i32; 3],
+    t: &mut Targets<'_>,
     p: [f64; 3],
+    hit: bool,
     r: i32,
     geo: &PairGeometry,
     table: &KernelTable,
 ) {
     // Constant stencil sizes let the compiler unroll the short loops.
     match r {
-        1 => scatter_point_n::<3>(brick, w, block, p, 3, geo, table),
-        2 => scatter_point_n::<5>(brick, w, block, p, 5, geo, table),
-        3 => scatter_point_n::<7>(brick, w, block, p, 7, geo, table),
-        _ => scatter_point_n::<MAX_STENCIL>(brick, w, block, p, (2 * r + 1) as usize, geo, table),
+        1 => scatter_point_n::<3>(t, p, hit, 3, geo, table),
+        2 => scatter_point_n::<5>(t, p, hit, 5, geo, table),
+        3 => scatter_point_n::<7>(t, p, hit, 7, geo, table),
+        _ => scatter_point_n::<MAX_STENCIL>(t, p, hit, (2 * r + 1) as usize, geo, table),
     }
 }
 
@@ -256,29 +234,29 @@ fn scatter_point(
 /// away from offset 0, so that run is contiguous and found by counting, without branches.
 #[inline(always)]
 fn scatter_point_n<const N: usize>(
-    brick: &mut [i64],
-    w: usize,
-    block: [i32; 3],
+    t: &mut Targets<'_>,
     p: [f64; 3],
+    hit: bool,
     n: usize,
     geo: &PairGeometry,
     table: &KernelTable,
 ) {
     let (c, f) = split_point(p);
-    let r = n / 2;
-    // Brick index of the stencil's first cell (offset −R on each axis).
-    let local = [0, 1, 2].map(|i| (c[i] - block[i] * B) as usize);
-    let base = (local[2] * w + local[1]) * w + local[0];
+    let r = (n / 2) as i32;
+    // Cell coordinates relative to the bucket block's first cell, at offset −R.
+    let local = [0, 1, 2].map(|i| c[i] - t.block[i] * B - r);
     // Squared axis distances for offsets o = i − R, exactly as `pair_coord` computes them.
     let axis = |a: usize| -> [f64; N] {
         std::array::from_fn(|i| {
-            let d = f64::from(i as i32 - r as i32) - f[a];
+            let d = f64::from(i as i32 - r) - f[a];
             d * d
         })
     };
     let (dx, dy, dz) = (axis(0), axis(1), axis(2));
     let ell2 = geo.ell_cells * geo.ell_cells * (1.0 + 1e-12);
+    let half = n / 2;
     for iz in 0..n {
+        let z = local[2] + iz as i32;
         for iy in 0..n {
             let row_d2 = dz[iz] + dy[iy];
             let rem = ell2 - row_d2;
@@ -286,12 +264,22 @@ fn scatter_point_n<const N: usize>(
                 continue;
             }
             // Offsets left of centre outside the ball form a prefix, right of it a suffix.
-            let x0: usize = (0..r).map(|i| usize::from(dx[i] >= rem)).sum();
-            let x1 = n - 1 - (r + 1..n).map(|i| usize::from(dx[i] >= rem)).sum::<usize>();
-            let start = base + (iz * w + iy) * w;
-            for ix in x0..=x1 {
-                brick[start + ix] +=
-                    table.quantized_coord(KernelTable::coordinate(row_d2 + dx[ix], geo.scale));
+            let x0: usize = (0..half).map(|i| usize::from(dx[i] >= rem)).sum();
+            let x1 = n - 1 - (half + 1..n).map(|i| usize::from(dx[i] >= rem)).sum::<usize>();
+            let y = local[1] + iy as i32;
+            let mut ix = x0;
+            while ix <= x1 {
+                // The part of the run inside one block.
+                let x = local[0] + ix as i32;
+                let end = x1.min(ix + (B - 1 - (x & (B - 1))) as usize);
+                let o = [x >> BLOCK_SHIFT, y >> BLOCK_SHIFT, z >> BLOCK_SHIFT];
+                let row = t.row(o, y & (B - 1), z & (B - 1), hit);
+                for k in ix..=end {
+                    let cell = (local[0] + k as i32) & (B - 1);
+                    row[cell as usize] +=
+                        table.quantized_coord(KernelTable::coordinate(row_d2 + dx[k], geo.scale));
+                }
+                ix = end + 1;
             }
         }
     }

@@ -133,11 +133,14 @@ fn slot_of(key: u64, mask: usize) -> usize {
 fn voxel_key(p: [f64; 3], inv_ds: f64) -> Option<u64> {
     let mut key = 0u64;
     for v in p {
-        let f = (v * inv_ds).floor();
-        if !(-KEY_LIMIT..KEY_LIMIT).contains(&f) {
+        let s = v * inv_ds;
+        if !(-KEY_LIMIT..KEY_LIMIT).contains(&s) {
             return None;
         }
-        key = (key << KEY_BITS) | ((f as i64 + KEY_LIMIT as i64) as u64);
+        // floor without a libm call: truncate, then step down for negative non-integers.
+        let t = s as i64;
+        let f = if (t as f64) > s { t - 1 } else { t };
+        key = (key << KEY_BITS) | ((f + KEY_LIMIT as i64) as u64);
     }
     Some(key)
 }
