@@ -148,9 +148,7 @@ pub fn write_output(path: Option<&PathBuf>, bytes: &[u8]) -> Result<()> {
             out.write_all(bytes).and_then(|()| out.flush()).context("writing to stdout")
         }
         Some(p) => {
-            let mut name = p.file_name().map(|n| n.to_os_string()).unwrap_or_default();
-            name.push(format!(".tmp-{}", std::process::id()));
-            let tmp = p.with_file_name(name);
+            let tmp = crate::store::temp_sibling(p);
             let r = std::fs::write(&tmp, bytes).and_then(|()| std::fs::rename(&tmp, p));
             if r.is_err() {
                 let _ = std::fs::remove_file(&tmp);

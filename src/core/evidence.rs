@@ -84,6 +84,13 @@ pub fn to_cell_units(p_m: [f64; 3], res_m: f64) -> [f64; 3] {
     [p_m[0] / res_m, p_m[1] / res_m, p_m[2] / res_m]
 }
 
+/// A training set as labelled points in cell units (hits first, `true`), replacing `out`.
+pub fn labelled_cell_points(set: &TrainingSet, res_m: f64, out: &mut Vec<([f64; 3], bool)>) {
+    out.clear();
+    out.extend(set.hits.iter().map(|&p| (to_cell_units(p, res_m), true)));
+    out.extend(set.frees.iter().map(|&p| (to_cell_units(p, res_m), false)));
+}
+
 /// Floor to i32 without a libm call (baseline x86-64 has no SSE4.1 `roundsd`); exact for the
 /// key range (|v| < 2^31).
 #[inline(always)]
@@ -235,8 +242,8 @@ mod tests {
             let set = TrainingBuilder::default().build(&pts, origin, &params);
             let geo = PairGeometry::new(res, ell);
             let table = KernelTable::new();
-            let labelled: Vec<_> = set.hits.iter().map(|&p| (to_cell_units(p, res), true))
-                .chain(set.frees.iter().map(|&p| (to_cell_units(p, res), false))).collect();
+            let mut labelled = Vec::new();
+            labelled_cell_points(&set, res, &mut labelled);
             let k = split.min(labelled.len());
             let whole = Scatter::default().delta_of(&labelled, &geo, &table);
             let parts = ScanDelta::sum(vec![

@@ -231,9 +231,8 @@ impl Integrator {
             return self.scatter.delta(&self.set, &self.geometry, &self.table);
         }
         let (geo, table) = (&self.geometry, &self.table);
-        let mut pts: Vec<([f64; 3], bool)> = Vec::with_capacity(self.set.len());
-        pts.extend(self.set.hits.iter().map(|&p| (super::evidence::to_cell_units(p, geo.res_m), true)));
-        pts.extend(self.set.frees.iter().map(|&p| (super::evidence::to_cell_units(p, geo.res_m), false)));
+        let mut pts = Vec::with_capacity(self.set.len());
+        super::evidence::labelled_cell_points(&self.set, geo.res_m, &mut pts);
         let chunk = pts.len().div_ceil(threads).max(1);
         let parts = std::thread::scope(|s| {
             let handles: Vec<_> = pts

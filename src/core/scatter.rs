@@ -83,10 +83,7 @@ impl Scatter {
         table: &KernelTable,
     ) -> ScanDelta {
         let mut cells = std::mem::take(&mut self.cells);
-        cells.clear();
-        let to_cells = |p: &[f64; 3]| super::evidence::to_cell_units(*p, geo.res_m);
-        cells.extend(set.hits.iter().map(|p| (to_cells(p), true)));
-        cells.extend(set.frees.iter().map(|p| (to_cells(p), false)));
+        super::evidence::labelled_cell_points(set, geo.res_m, &mut cells);
         let out = self.delta_of(&cells, geo, table);
         self.cells = cells;
         out

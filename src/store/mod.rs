@@ -95,7 +95,8 @@ pub fn save_map(path: &Path, map: &EvidenceMap) -> Result<(), StoreError> {
     result
 }
 
-fn temp_sibling(path: &Path) -> PathBuf {
+/// The temporary sibling a file is written to before it is renamed over `path`.
+pub fn temp_sibling(path: &Path) -> PathBuf {
     let mut name = path.file_name().map(|n| n.to_os_string()).unwrap_or_default();
     name.push(format!(".tmp-{}", std::process::id()));
     path.with_file_name(name)
