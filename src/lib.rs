@@ -9,12 +9,14 @@
 //! | [`store`] | the on-disk map file (SQLite) | network |
 //! | [`sim`] | a built-in scene and a simulated LiDAR with analytic ground truth | network |
 //! | [`eval`] | ROC / AUC against a ground-truth map | network |
+//! | [`service`] | named maps, one writer per map, snapshots for readers, dedup of scans | any transport or wire format |
 //! | `cli` (binary only) | the `bgkmap` command line | — |
 #![cfg_attr(test, allow(clippy::unwrap_used))]
 
 pub mod core;
 pub mod eval;
 pub mod io;
+pub mod service;
 pub mod sim;
 pub mod store;
 

@@ -12,6 +12,7 @@ use super::key::{BlockKey, CellKey};
 use super::params::{MapParams, Thresholds};
 use super::training::{TrainingBuilder, TrainingSet};
 use rustc_hash::FxHashMap;
+use std::sync::Arc;
 
 /// Free / occupied / unknown under a set of thresholds (Eq. 9).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -85,10 +86,13 @@ fn alpha_beta(e: Evidence, params: &MapParams) -> (f64, f64) {
 }
 
 /// A sparse map of evidence blocks with its parameters.
+///
+/// Blocks are shared (`Arc`) and copied on write, so a clone is a cheap immutable snapshot for
+/// readers (one reference count per block) while the writer goes on updating its own copy.
 #[derive(Debug, Clone)]
 pub struct EvidenceMap {
     params: MapParams,
-    blocks: FxHashMap<BlockKey, Box<BlockEvidence>>,
+    blocks: FxHashMap<BlockKey, Arc<BlockEvidence>>,
 }
 
 impl EvidenceMap {
@@ -142,11 +146,39 @@ impl EvidenceMap {
     /// evidence are dropped, so removing a scan restores the map exactly.
     pub fn apply(&mut self, delta: &ScanDelta, sign: i64) {
         for (key, d) in &delta.blocks {
-            let blk = self.blocks.entry(*key).or_insert_with(BlockEvidence::zeroed);
+            let shared = self.blocks.entry(*key).or_insert_with(|| Arc::from(BlockEvidence::zeroed()));
+            let blk = Arc::make_mut(shared);
             blk.add_scaled(d, sign);
             if sign < 0 && blk.is_empty() {
                 self.blocks.remove(key);
             }
+        }
+    }
+
+    /// The blocks a delta would produce, without changing the map: `(key, new block)`, `None`
+    /// where the block would be left without evidence. Apply them with [`Self::set_blocks`].
+    pub fn blocks_after(&self, delta: &ScanDelta, sign: i64) -> Vec<(BlockKey, Option<Arc<BlockEvidence>>)> {
+        delta
+            .blocks
+            .iter()
+            .map(|(key, d)| {
+                let mut b = match self.blocks.get(key) {
+                    Some(old) => Box::new((**old).clone()),
+                    None => BlockEvidence::zeroed(),
+                };
+                b.add_scaled(d, sign);
+                (*key, (!b.is_empty()).then(|| Arc::from(b)))
+            })
+            .collect()
+    }
+
+    /// Replaces blocks (from [`Self::blocks_after`]); `None` removes a block.
+    pub fn set_blocks(&mut self, blocks: Vec<(BlockKey, Option<Arc<BlockEvidence>>)>) {
+        for (key, b) in blocks {
+            match b {
+                Some(b) => self.blocks.insert(key, b),
+                None => self.blocks.remove(&key),
+            };
         }
     }
 
@@ -155,7 +187,7 @@ impl EvidenceMap {
         if block.is_empty() {
             self.blocks.remove(&key);
         } else {
-            self.blocks.insert(key, block);
+            self.blocks.insert(key, Arc::from(block));
         }
     }
 
@@ -166,7 +198,8 @@ impl EvidenceMap {
             return Err(diff);
         }
         for (key, b) in &other.blocks {
-            self.blocks.entry(*key).or_insert_with(BlockEvidence::zeroed).add_scaled(b, 1);
+            let shared = self.blocks.entry(*key).or_insert_with(|| Arc::from(BlockEvidence::zeroed()));
+            Arc::make_mut(shared).add_scaled(b, 1);
         }
         Ok(())
     }
@@ -221,7 +254,23 @@ impl Integrator {
         origin_world: [f64; 3],
         threads: usize,
     ) -> ScanDelta {
-        self.training.build_into(points_world, origin_world, &self.params, &mut self.set);
+        self.scan_delta_with_range(points_world, origin_world, threads, None)
+    }
+
+    /// As [`Self::scan_delta`] with the scan's own maximum range (m), if it has one: the map's
+    /// `max_range_m` caps it (0 = unlimited on either side).
+    pub fn scan_delta_with_range(
+        &mut self,
+        points_world: &[[f32; 3]],
+        origin_world: [f64; 3],
+        threads: usize,
+        scan_max_range_m: Option<f64>,
+    ) -> ScanDelta {
+        let mut params = self.params;
+        if let Some(r) = scan_max_range_m.filter(|r| *r > 0.0) {
+            params.max_range_m = if params.max_range_m > 0.0 { params.max_range_m.min(r) } else { r };
+        }
+        self.training.build_into(points_world, origin_world, &params, &mut self.set);
         self.training_delta(threads)
     }
 

@@ -1,7 +1,6 @@
 //! A decoded scan in the world frame, and the PCD → scan conversion (formats.md §3.4).
 
 use super::pcd::PcdCloud;
-use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 
 /// Points (world frame, metres) plus the sensor origin they were seen from.
 #[derive(Debug, Clone, PartialEq)]
@@ -12,15 +11,8 @@ pub struct Scan {
     pub dropped_nonfinite: usize,
 }
 
-/// The frame a PCD file's points are in.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub enum PointFrame {
-    /// Points are already in the world frame; VIEWPOINT gives only the ray origin (la3dm).
-    #[default]
-    World,
-    /// Points are in the sensor frame: `p_world = q · p + t` with VIEWPOINT `t, q`.
-    Sensor,
-}
+pub use crate::core::pose::PointFrame;
+use crate::core::pose::Pose;
 
 /// Why a cloud could not be turned into a scan.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -32,9 +24,6 @@ pub enum ScanError {
     #[error("sensor origin must be finite")]
     BadOrigin,
 }
-
-/// Tolerance on |q| − 1 for a quaternion read from text with f32 precision.
-pub const UNIT_QUATERNION_TOLERANCE: f64 = 1e-3;
 
 /// Converts a PCD cloud; `origin_override` (world frame) replaces the VIEWPOINT translation.
 pub fn scan_from_pcd(
@@ -54,16 +43,8 @@ pub fn scan_from_pcd(
     let mut points_world = cloud.points;
     if frame == PointFrame::Sensor {
         let v = vp.unwrap_or([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]);
-        let q = Quaternion::new(v[3], v[4], v[5], v[6]);
-        if !((q.norm() - 1.0).abs() < UNIT_QUATERNION_TOLERANCE) {
-            return Err(ScanError::BadRotation([v[3], v[4], v[5], v[6]]));
-        }
-        let rot = UnitQuaternion::from_quaternion(q);
-        let t = Vector3::from(origin_world);
-        for p in &mut points_world {
-            let w = rot * Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2])) + t;
-            *p = [w.x as f32, w.y as f32, w.z as f32];
-        }
+        let pose = Pose { translation_m: origin_world, rotation_wxyz: [v[3], v[4], v[5], v[6]] };
+        pose.sensor_to_world(&mut points_world).map_err(|_| ScanError::BadRotation(pose.rotation_wxyz))?;
     }
     Ok(Scan { points_world, origin_world, dropped_nonfinite: cloud.dropped_nonfinite })
 }

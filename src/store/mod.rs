@@ -18,12 +18,16 @@
 //! CREATE TABLE blocks (bx INTEGER NOT NULL, by INTEGER NOT NULL, bz INTEGER NOT NULL,
 //!                      data BLOB NOT NULL, crc32 INTEGER NOT NULL,
 //!                      PRIMARY KEY (bx, by, bz)) WITHOUT ROWID;
+//! CREATE TABLE scans  (source TEXT NOT NULL, seq INTEGER NOT NULL,
+//!                      PRIMARY KEY (source, seq)) WITHOUT ROWID;
 //! ```
 //!
 //! - `meta`: `format` = `bgkmap`, `format_version` = `1`, `block_edge` = `8` (cells per block edge),
 //!   `fixed_shift` = `24` (fractional bits of the evidence sums), `writer` = the crate version.
 //! - `params`: every map parameter by its CLI flag name ([`MapParams::to_pairs`]), values in
 //!   Rust's shortest round-trip decimal form (parsing gives the same f64 bits).
+//! - `scans`: the identities `(source, seq)` of the scans whose evidence the blocks hold (maps
+//!   built offline from files leave it empty). A server never applies a listed scan again.
 //! - `blocks`: one row per block holding evidence. `(bx, by, bz)` is the block key: cell key
 //!   `>> 3` per axis (cell key = `floor(x / resolution)`). `crc32` is the CRC-32 (IEEE, as zlib)
 //!   of `data`.
@@ -52,7 +56,9 @@ use rusqlite::{Connection, OpenFlags, OptionalExtension, params};
 use std::path::{Path, PathBuf};
 
 mod codec;
+mod file;
 pub use codec::{decode_block, encode_block};
+pub use file::{MapFile, OpenedMap, ScanId};
 
 /// The format version this build reads and writes.
 pub const FORMAT_VERSION: i64 = 1;
@@ -106,31 +112,9 @@ fn write_new(path: &Path, map: &EvidenceMap) -> Result<(), StoreError> {
     let _ = std::fs::remove_file(path);
     let e = sql(path);
     let mut conn = Connection::open(path).map_err(&e)?;
-    conn.execute_batch(&format!(
-        "PRAGMA application_id = {APPLICATION_ID}; PRAGMA user_version = {FORMAT_VERSION};
-         CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL) WITHOUT ROWID;
-         CREATE TABLE params (name TEXT PRIMARY KEY, value TEXT NOT NULL) WITHOUT ROWID;
-         CREATE TABLE blocks (bx INTEGER NOT NULL, by INTEGER NOT NULL, bz INTEGER NOT NULL,
-                              data BLOB NOT NULL, crc32 INTEGER NOT NULL,
-                              PRIMARY KEY (bx, by, bz)) WITHOUT ROWID;"
-    ))
-    .map_err(&e)?;
+    create_schema(&mut conn, path, map.params())?;
     let tx = conn.transaction().map_err(&e)?;
     {
-        let mut meta = tx.prepare("INSERT INTO meta (key, value) VALUES (?1, ?2)").map_err(&e)?;
-        for (k, v) in [
-            ("format", "bgkmap".to_string()),
-            ("format_version", FORMAT_VERSION.to_string()),
-            ("block_edge", BLOCK_EDGE.to_string()),
-            ("fixed_shift", FIXED_SHIFT.to_string()),
-            ("writer", format!("bgkmap {}", env!("CARGO_PKG_VERSION"))),
-        ] {
-            meta.execute(params![k, v]).map_err(&e)?;
-        }
-        let mut p = tx.prepare("INSERT INTO params (name, value) VALUES (?1, ?2)").map_err(&e)?;
-        for (k, v) in map.params().to_pairs() {
-            p.execute(params![k, v]).map_err(&e)?;
-        }
         let mut ins = tx
             .prepare("INSERT INTO blocks (bx, by, bz, data, crc32) VALUES (?1, ?2, ?3, ?4, ?5)")
             .map_err(&e)?;
@@ -146,16 +130,52 @@ fn write_new(path: &Path, map: &EvidenceMap) -> Result<(), StoreError> {
     conn.close().map_err(|(_, err)| e(err))
 }
 
+/// Creates the tables and writes the format header and parameters of a new, empty map file.
+fn create_schema(conn: &mut Connection, path: &Path, map_params: &MapParams) -> Result<(), StoreError> {
+    let e = sql(path);
+    conn.execute_batch(&format!(
+        "PRAGMA application_id = {APPLICATION_ID}; PRAGMA user_version = {FORMAT_VERSION};
+         CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL) WITHOUT ROWID;
+         CREATE TABLE params (name TEXT PRIMARY KEY, value TEXT NOT NULL) WITHOUT ROWID;
+         CREATE TABLE blocks (bx INTEGER NOT NULL, by INTEGER NOT NULL, bz INTEGER NOT NULL,
+                              data BLOB NOT NULL, crc32 INTEGER NOT NULL,
+                              PRIMARY KEY (bx, by, bz)) WITHOUT ROWID;
+         CREATE TABLE scans (source TEXT NOT NULL, seq INTEGER NOT NULL,
+                             PRIMARY KEY (source, seq)) WITHOUT ROWID;"
+    ))
+    .map_err(&e)?;
+    let tx = conn.transaction().map_err(&e)?;
+    {
+        let mut meta = tx.prepare("INSERT INTO meta (key, value) VALUES (?1, ?2)").map_err(&e)?;
+        for (k, v) in [
+            ("format", "bgkmap".to_string()),
+            ("format_version", FORMAT_VERSION.to_string()),
+            ("block_edge", BLOCK_EDGE.to_string()),
+            ("fixed_shift", FIXED_SHIFT.to_string()),
+            ("writer", format!("bgkmap {}", env!("CARGO_PKG_VERSION"))),
+        ] {
+            meta.execute(params![k, v]).map_err(&e)?;
+        }
+        let mut p = tx.prepare("INSERT INTO params (name, value) VALUES (?1, ?2)").map_err(&e)?;
+        for (k, v) in map_params.to_pairs() {
+            p.execute(params![k, v]).map_err(&e)?;
+        }
+    }
+    tx.commit().map_err(&e)
+}
+
 /// Opens `path` read-only, checks it is a bgkmap file of this version, and returns the connection.
 fn open_checked(path: &Path) -> Result<Connection, StoreError> {
+    open_with(path, OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX)
+}
+
+fn open_with(path: &Path, flags: OpenFlags) -> Result<Connection, StoreError> {
     if !path.is_file() {
         let error = std::io::Error::new(std::io::ErrorKind::NotFound, "no such map file");
         return Err(StoreError::Io { path: path.to_path_buf(), error });
     }
     let not_a_map = |reason: String| StoreError::NotAMap { path: path.to_path_buf(), reason };
-    let conn =
-        Connection::open_with_flags(path, OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX)
-            .map_err(|err| not_a_map(err.to_string()))?;
+    let conn = Connection::open_with_flags(path, flags).map_err(|err| not_a_map(err.to_string()))?;
     let app: i64 = conn
         .query_row("PRAGMA application_id", [], |r| r.get(0))
         .map_err(|err| not_a_map(err.to_string()))?;
@@ -188,7 +208,10 @@ fn read_params(conn: &Connection, path: &Path) -> Result<MapParams, StoreError> 
 
 /// Loads a whole map, verifying every block's checksum and encoding.
 pub fn load_map(path: &Path) -> Result<EvidenceMap, StoreError> {
-    let conn = open_checked(path)?;
+    read_map(&open_checked(path)?, path)
+}
+
+fn read_map(conn: &Connection, path: &Path) -> Result<EvidenceMap, StoreError> {
     let e = sql(path);
     let edge: Option<String> = conn
         .query_row("SELECT value FROM meta WHERE key = 'block_edge'", [], |r| r.get(0))
@@ -197,7 +220,7 @@ pub fn load_map(path: &Path) -> Result<EvidenceMap, StoreError> {
     if edge.as_deref() != Some(&BLOCK_EDGE.to_string()) {
         return Err(StoreError::NotAMap { path: path.to_path_buf(), reason: format!("block_edge {edge:?}") });
     }
-    let mut map = EvidenceMap::new(read_params(&conn, path)?);
+    let mut map = EvidenceMap::new(read_params(conn, path)?);
     let mut stmt = conn.prepare("SELECT bx, by, bz, data, crc32 FROM blocks").map_err(&e)?;
     let mut rows = stmt.query([]).map_err(&e)?;
     while let Some(row) = rows.next().map_err(&e)? {

@@ -1,0 +1,220 @@
+use super::*;
+use crate::core::{Integrator, PointFrame, Pose};
+use crate::sim::{Lidar, simulate};
+
+fn sim_scans(n: usize) -> Vec<ScanInput> {
+    let (_, scans) = simulate(0, n, &Lidar::default());
+    scans
+        .into_iter()
+        .enumerate()
+        .map(|(i, s)| ScanInput {
+            source: "robot1".into(),
+            seq: i as u64 + 1,
+            world_from_sensor: Pose::at(s.origin),
+            frame: PointFrame::World,
+            points: s.points_world,
+            max_range_m: None,
+        })
+        .collect()
+}
+
+fn offline(scans: &[ScanInput]) -> EvidenceMap {
+    let params = MapParams::default();
+    let mut map = EvidenceMap::new(params);
+    let mut integ = Integrator::new(params);
+    for s in scans {
+        integ.integrate(&mut map, &s.points, s.world_from_sensor.translation_m, 1);
+    }
+    map
+}
+
+fn same(a: &EvidenceMap, b: &EvidenceMap) -> bool {
+    a.block_keys_sorted() == b.block_keys_sorted()
+        && a.block_keys_sorted().into_iter().all(|k| a.block(k) == b.block(k))
+}
+
+#[test]
+fn ingest_equals_offline_build_and_survives_restart() {
+    let dir = tempfile::tempdir().unwrap();
+    let scans = sim_scans(3);
+    {
+        let svc = MapService::open(dir.path(), ServiceConfig::default()).unwrap();
+        svc.create_map("demo", MapParams::default()).unwrap();
+        for s in &scans {
+            let ack = svc.insert_scan_blocking("demo", s.clone()).unwrap();
+            assert!(ack.applied);
+        }
+        let snap = svc.snapshot("demo").unwrap();
+        assert_eq!(snap.version, 3);
+        assert!(same(&snap.map, &offline(&scans)));
+        let info = svc.map_info("demo").unwrap();
+        assert_eq!(info.sources["robot1"].applied, 3);
+        assert_eq!(info.sources["robot1"].highest_seq, Some(3));
+    }
+    // A new service on the same directory resumes the map and still knows the scans.
+    let svc = MapService::open(dir.path(), ServiceConfig::default()).unwrap();
+    assert_eq!(svc.list_maps().len(), 1);
+    let snap = svc.snapshot("demo").unwrap();
+    assert_eq!(snap.version, 3);
+    assert!(same(&snap.map, &offline(&scans)));
+    let again = svc.insert_scan_blocking("demo", scans[1].clone()).unwrap();
+    assert!(!again.applied, "a scan the map holds is not applied twice, across restarts");
+    assert!(same(&svc.snapshot("demo").unwrap().map, &offline(&scans)));
+    // And the file is a valid map for the offline tools.
+    let path = dir.path().join("demo.bgkmap");
+    svc.shutdown();
+    assert!(same(&crate::store::load_map(&path).unwrap(), &offline(&scans)));
+}
+
+#[test]
+fn duplicates_change_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let svc = MapService::open(dir.path(), ServiceConfig::default()).unwrap();
+    svc.create_map("m", MapParams::default()).unwrap();
+    let scans = sim_scans(2);
+    svc.insert_scan_blocking("m", scans[0].clone()).unwrap();
+    let before = svc.snapshot("m").unwrap();
+    let ack = svc.insert_scan_blocking("m", scans[0].clone()).unwrap();
+    assert_eq!(ack, Ack { applied: false, version: 1, dropped_points: 0 });
+    let after = svc.snapshot("m").unwrap();
+    assert!(Arc::ptr_eq(&before, &after));
+    // Same seq from another source is a different scan.
+    let other = ScanInput { source: "robot2".into(), ..scans[1].clone() };
+    assert!(svc.insert_scan_blocking("m", other).unwrap().applied);
+    assert_eq!(svc.map_info("m").unwrap().sources["robot1"].duplicates, 1);
+}
+
+#[test]
+fn bad_input_is_refused_and_changes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let svc = MapService::open(dir.path(), ServiceConfig::default()).unwrap();
+    svc.create_map("m", MapParams::default()).unwrap();
+    let good = sim_scans(1).remove(0);
+    let field = |r: Result<Ack, ServiceError>| match r {
+        Err(ServiceError::InvalidArgument { field, .. }) => field,
+        other => panic!("expected InvalidArgument, got {other:?}"),
+    };
+    let mut nan_pose = good.clone();
+    nan_pose.world_from_sensor.translation_m[1] = f64::NAN;
+    assert_eq!(field(svc.insert_scan_blocking("m", nan_pose)), "world_from_sensor");
+    let mut skew = good.clone();
+    skew.world_from_sensor.rotation_wxyz = [1.0, 1.0, 0.0, 0.0];
+    assert_eq!(field(svc.insert_scan_blocking("m", skew)), "world_from_sensor");
+    let empty = ScanInput { points: vec![], ..good.clone() };
+    assert_eq!(field(svc.insert_scan_blocking("m", empty)), "points");
+    let all_nan = ScanInput { points: vec![[f32::NAN, 0.0, 0.0]], ..good.clone() };
+    assert_eq!(field(svc.insert_scan_blocking("m", all_nan)), "points");
+    let no_source = ScanInput { source: String::new(), ..good.clone() };
+    assert_eq!(field(svc.insert_scan_blocking("m", no_source)), "source");
+    let bad_range = ScanInput { max_range_m: Some(f64::INFINITY), ..good.clone() };
+    assert_eq!(field(svc.insert_scan_blocking("m", bad_range)), "max_range");
+    assert!(matches!(svc.insert_scan_blocking("nope", good.clone()), Err(ServiceError::NotFound(_))));
+    assert_eq!(svc.snapshot("m").unwrap().version, 0);
+    assert_eq!(svc.map_info("m").unwrap().sources["robot1"].rejected, 5);
+    // Map creation.
+    assert!(matches!(svc.create_map("m", MapParams::default()), Err(ServiceError::AlreadyExists(_))));
+    assert!(matches!(
+        svc.create_map("../etc", MapParams::default()),
+        Err(ServiceError::InvalidArgument { .. })
+    ));
+    let bad = MapParams { ell_m: f64::NAN, ..Default::default() };
+    match svc.create_map("x", bad) {
+        Err(ServiceError::InvalidArgument { field, .. }) => assert_eq!(field, "ell"),
+        other => panic!("{other:?}"),
+    }
+    // Non-finite points are dropped and counted, not fatal.
+    let mut some_nan = good.clone();
+    some_nan.points.push([f32::NAN, 1.0, 1.0]);
+    assert_eq!(svc.insert_scan_blocking("m", some_nan).unwrap().dropped_points, 1);
+}
+
+#[test]
+fn sensor_frame_scans_equal_their_world_frame_twins() {
+    let dir = tempfile::tempdir().unwrap();
+    let svc = MapService::open(dir.path(), ServiceConfig::default()).unwrap();
+    svc.create_map("w", MapParams::default()).unwrap();
+    svc.create_map("s", MapParams::default()).unwrap();
+    // The same points, expressed in a sensor frame translated by t (identity rotation, so the
+    // f32 round trip is exact for these binary-fraction coordinates).
+    let world = ScanInput {
+        source: "r".into(),
+        seq: 1,
+        world_from_sensor: Pose::at([1.0, 2.0, 0.5]),
+        frame: PointFrame::World,
+        points: (0..400)
+            .map(|i| [4.0, -1.0 + (i % 20) as f32 * 0.125, -0.5 + (i / 20) as f32 * 0.125])
+            .collect(),
+        max_range_m: None,
+    };
+    let sensor = ScanInput {
+        frame: PointFrame::Sensor,
+        points: world.points.iter().map(|p| [p[0] - 1.0, p[1] - 2.0, p[2] - 0.5]).collect(),
+        ..world.clone()
+    };
+    svc.insert_scan_blocking("w", world).unwrap();
+    svc.insert_scan_blocking("s", sensor).unwrap();
+    assert!(same(&svc.snapshot("w").unwrap().map, &svc.snapshot("s").unwrap().map));
+}
+
+#[test]
+fn a_full_queue_answers_busy() {
+    let dir = tempfile::tempdir().unwrap();
+    let config = ServiceConfig { queue_capacity: 1, ..Default::default() };
+    let svc = MapService::open(dir.path(), config).unwrap();
+    svc.create_map("m", MapParams::default()).unwrap();
+    let scans = sim_scans(3);
+    // The first scan's completion blocks the writer until we release it.
+    let (release_tx, release_rx) = std::sync::mpsc::channel::<()>();
+    let (started_tx, started_rx) = std::sync::mpsc::channel::<()>();
+    svc.submit_scan(
+        "m",
+        scans[0].clone(),
+        Box::new(move |_| {
+            let _ = started_tx.send(());
+            let _ = release_rx.recv();
+        }),
+    )
+    .unwrap();
+    started_rx.recv().unwrap();
+    svc.submit_scan("m", scans[1].clone(), Box::new(|_| ())).unwrap(); // fills the queue
+    match svc.submit_scan("m", scans[2].clone(), Box::new(|_| ())) {
+        Err(ServiceError::Busy { retry_after_ms, .. }) => assert!(retry_after_ms > 0),
+        other => panic!("expected Busy, got {other:?}"),
+    }
+    release_tx.send(()).unwrap();
+    svc.shutdown();
+    assert_eq!(svc.snapshot("m").unwrap().version, 2, "queued scans drain on shutdown");
+}
+
+/// Readers polling during ingest only ever see whole scans: every snapshot equals the offline
+/// build of its first `version` scans.
+#[test]
+fn readers_never_see_a_partial_scan() {
+    let dir = tempfile::tempdir().unwrap();
+    let svc = Arc::new(MapService::open(dir.path(), ServiceConfig::default()).unwrap());
+    svc.create_map("m", MapParams::default()).unwrap();
+    let scans = sim_scans(5);
+    let prefixes: Vec<EvidenceMap> = (0..=scans.len()).map(|k| offline(&scans[..k])).collect();
+    let reader = {
+        let svc = svc.clone();
+        std::thread::spawn(move || {
+            let mut seen = std::collections::BTreeSet::new();
+            let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+            while std::time::Instant::now() < deadline {
+                let snap = svc.snapshot("m").unwrap();
+                let v = snap.version as usize;
+                assert!(same(&snap.map, &prefixes[v]), "snapshot at version {v} is not a whole-scan state");
+                seen.insert(v);
+                if v == 5 {
+                    break;
+                }
+            }
+            seen
+        })
+    };
+    for s in &scans {
+        svc.insert_scan_blocking("m", s.clone()).unwrap();
+    }
+    let seen = reader.join().unwrap();
+    assert!(seen.contains(&5));
+}
