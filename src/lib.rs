@@ -13,6 +13,8 @@
 //! | `cli` (binary only) | the `bgkmap` command line | — |
 #![cfg_attr(test, allow(clippy::unwrap_used))]
 
+#[cfg(feature = "server")]
+pub mod api;
 pub mod core;
 pub mod eval;
 pub mod io;

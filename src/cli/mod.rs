@@ -9,6 +9,8 @@ mod demo;
 mod eval_cmd;
 mod export;
 pub mod plot;
+#[cfg(feature = "server")]
+pub mod serve;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
@@ -41,6 +43,9 @@ enum Command {
     Simulate(demo::SimulateArgs),
     /// Simulate a robot in the built-in scene, build its map and evaluate it.
     Demo(demo::DemoArgs),
+    /// Run the map server (gRPC and HTTP).
+    #[cfg(feature = "server")]
+    Serve(serve::ServeArgs),
 }
 
 pub fn main() -> ExitCode {
@@ -53,6 +58,8 @@ pub fn main() -> ExitCode {
         Command::Bench(b) => bench::run(b),
         Command::Simulate(a) => demo::run_simulate(a),
         Command::Demo(a) => demo::run_demo(a),
+        #[cfg(feature = "server")]
+        Command::Serve(a) => serve::run(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

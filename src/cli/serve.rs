@@ -1,0 +1,211 @@
+//! `bgkmap serve`: the long-running map server (gRPC and HTTP on loopback by default).
+//!
+//! Configuration comes from compiled-in defaults, then a TOML file (`--config`), then the
+//! environment (`BGKMAP_*`), then flags — parsed once into a [`ServerConfig`].
+
+use crate::api::grpc::{GrpcConfig, routes};
+use crate::api::http::{HttpConfig, router};
+use crate::service::{MapService, ScanLimits, ServiceConfig};
+use anyhow::{Context, Result};
+use clap::Args;
+use serde::Deserialize;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::Arc;
+
+/// Every setting of the server. TOML keys are the field names.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ServerConfig {
+    /// Directory holding one `<map>.bgkmap` file per map. Default `bgkmap-data`.
+    pub data_dir: PathBuf,
+    /// gRPC listen address. Default `127.0.0.1:50051` (loopback only).
+    pub grpc_listen: SocketAddr,
+    /// HTTP listen address. Default `127.0.0.1:8080` (loopback only).
+    pub http_listen: SocketAddr,
+    /// Scans queued per map before ingest answers RESOURCE_EXHAUSTED / 429. Default 64.
+    pub queue_capacity: usize,
+    /// Threads per scan integration. Default 1.
+    pub threads_per_scan: usize,
+    /// Most points per scan. Default 4194304.
+    pub max_points: usize,
+    /// Largest box query in lattice positions. Default 4000000.
+    pub max_box_cells: u64,
+    /// Largest request message / body in bytes. Default 67108864 (64 MiB).
+    pub max_message_bytes: usize,
+}
+
+impl Default for ServerConfig {
+    fn default() -> Self {
+        Self {
+            data_dir: PathBuf::from("bgkmap-data"),
+            grpc_listen: SocketAddr::from(([127, 0, 0, 1], 50051)),
+            http_listen: SocketAddr::from(([127, 0, 0, 1], 8080)),
+            queue_capacity: 64,
+            threads_per_scan: 1,
+            max_points: 4 << 20,
+            max_box_cells: 4_000_000,
+            max_message_bytes: 64 << 20,
+        }
+    }
+}
+
+#[derive(Debug, Args)]
+pub struct ServeArgs {
+    /// TOML configuration file (keys as in `deploy/bgkmap.toml`).
+    #[arg(long, env = "BGKMAP_CONFIG")]
+    pub config: Option<PathBuf>,
+    /// Directory of map files.
+    #[arg(long, env = "BGKMAP_DATA_DIR")]
+    pub data_dir: Option<PathBuf>,
+    /// gRPC listen address (port 0 picks a free port; the bound address is printed).
+    #[arg(long, env = "BGKMAP_GRPC_LISTEN")]
+    pub grpc_listen: Option<SocketAddr>,
+    /// HTTP listen address (port 0 picks a free port; the bound address is printed).
+    #[arg(long, env = "BGKMAP_HTTP_LISTEN")]
+    pub http_listen: Option<SocketAddr>,
+    /// Scans queued per map before ingest is refused as busy.
+    #[arg(long, env = "BGKMAP_QUEUE_CAPACITY")]
+    pub queue_capacity: Option<usize>,
+    /// Largest box query in lattice positions.
+    #[arg(long, env = "BGKMAP_MAX_BOX_CELLS")]
+    pub max_box_cells: Option<u64>,
+}
+
+impl ServeArgs {
+    /// Defaults, then the file, then environment and flags (clap reads both).
+    pub fn resolve(&self) -> Result<ServerConfig> {
+        let mut c = match &self.config {
+            Some(path) => {
+                let text = std::fs::read_to_string(path).with_context(|| format!("{}: cannot read", path.display()))?;
+                toml::from_str(&text).with_context(|| format!("{}: invalid configuration", path.display()))?
+            }
+            None => ServerConfig::default(),
+        };
+        if let Some(v) = &self.data_dir {
+            c.data_dir = v.clone();
+        }
+        if let Some(v) = self.grpc_listen {
+            c.grpc_listen = v;
+        }
+        if let Some(v) = self.http_listen {
+            c.http_listen = v;
+        }
+        if let Some(v) = self.queue_capacity {
+            c.queue_capacity = v;
+        }
+        if let Some(v) = self.max_box_cells {
+            c.max_box_cells = v;
+        }
+        anyhow::ensure!(c.queue_capacity > 0, "queue_capacity must be > 0");
+        anyhow::ensure!(c.threads_per_scan > 0, "threads_per_scan must be > 0");
+        Ok(c)
+    }
+}
+
+/// A running server: its bound addresses and the service behind them.
+#[derive(Debug)]
+pub struct Running {
+    pub grpc_addr: SocketAddr,
+    pub http_addr: SocketAddr,
+    pub service: Arc<MapService>,
+    tasks: Vec<tokio::task::JoinHandle<Result<()>>>,
+    stop: tokio::sync::watch::Sender<bool>,
+}
+
+impl Running {
+    /// Stops accepting requests, finishes those in flight, drains every map's queue.
+    pub async fn shutdown(self) -> Result<()> {
+        let _ = self.stop.send(true);
+        for t in self.tasks {
+            t.await.context("server task panicked")??;
+        }
+        let service = self.service;
+        tokio::task::spawn_blocking(move || service.shutdown()).await?;
+        Ok(())
+    }
+}
+
+/// Opens the data directory, binds both listeners and starts serving.
+pub async fn start(c: &ServerConfig) -> Result<Running> {
+    let service_config = ServiceConfig {
+        queue_capacity: c.queue_capacity,
+        threads_per_scan: c.threads_per_scan,
+        limits: ScanLimits { max_points: c.max_points, ..ScanLimits::default() },
+    };
+    let dir = c.data_dir.clone();
+    let service = Arc::new(
+        tokio::task::spawn_blocking(move || MapService::open(&dir, service_config))
+            .await?
+            .with_context(|| format!("opening data directory {}", c.data_dir.display()))?,
+    );
+    let grpc_listener = tokio::net::TcpListener::bind(c.grpc_listen)
+        .await
+        .with_context(|| format!("binding gRPC to {}", c.grpc_listen))?;
+    let http_listener = tokio::net::TcpListener::bind(c.http_listen)
+        .await
+        .with_context(|| format!("binding HTTP to {}", c.http_listen))?;
+    let (grpc_addr, http_addr) = (grpc_listener.local_addr()?, http_listener.local_addr()?);
+    let (stop, stop_rx) = tokio::sync::watch::channel(false);
+    let stopped = move |mut rx: tokio::sync::watch::Receiver<bool>| async move {
+        let _ = rx.wait_for(|s| *s).await;
+    };
+    let grpc_config = GrpcConfig { max_box_cells: c.max_box_cells, max_message_bytes: c.max_message_bytes };
+    let grpc_routes = routes(service.clone(), grpc_config).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    let grpc = tokio::spawn({
+        let rx = stop_rx.clone();
+        async move {
+            tonic::transport::Server::builder()
+                .add_routes(grpc_routes)
+                .serve_with_incoming_shutdown(tokio_stream::wrappers::TcpListenerStream::new(grpc_listener), stopped(rx))
+                .await
+                .context("gRPC server")
+        }
+    });
+    let http_config = HttpConfig { max_box_cells: c.max_box_cells, max_body_bytes: c.max_message_bytes };
+    let app = router(service.clone(), http_config);
+    let http = tokio::spawn(async move {
+        axum::serve(http_listener, app).with_graceful_shutdown(stopped(stop_rx)).await.context("HTTP server")
+    });
+    Ok(Running { grpc_addr, http_addr, service, tasks: vec![grpc, http], stop })
+}
+
+/// Resolves when SIGINT or SIGTERM arrives.
+pub async fn shutdown_signal() {
+    let ctrl_c = tokio::signal::ctrl_c();
+    #[cfg(unix)]
+    {
+        let mut term = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(t) => t,
+            Err(_) => {
+                let _ = ctrl_c.await;
+                return;
+            }
+        };
+        tokio::select! {
+            _ = ctrl_c => {}
+            _ = term.recv() => {}
+        }
+    }
+    #[cfg(not(unix))]
+    let _ = ctrl_c.await;
+}
+
+pub fn runtime() -> Result<tokio::runtime::Runtime> {
+    tokio::runtime::Builder::new_multi_thread().enable_all().thread_name("bgkmap-io").build().context("tokio runtime")
+}
+
+pub fn run(a: ServeArgs) -> Result<()> {
+    let config = a.resolve()?;
+    runtime()?.block_on(async {
+        let running = start(&config).await?;
+        println!("grpc listening on {}", running.grpc_addr);
+        println!("http listening on {}", running.http_addr);
+        println!("data directory {}", config.data_dir.display());
+        use std::io::Write as _;
+        let _ = std::io::stdout().flush();
+        shutdown_signal().await;
+        eprintln!("bgkmap: shutting down (draining queues)");
+        running.shutdown().await
+    })
+}
