@@ -198,14 +198,36 @@ fn bench_ingest_json() {
     check_bench(&json, 3.0, 2.0);
 }
 
+/// The demo serves on free loopback ports, streams its robot over gRPC, and (with `--exit`)
+/// stops; run twice, the second run finds every scan already in the map.
+#[cfg(feature = "server")]
 #[test]
 fn demo_builds_and_evaluates() {
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
-    let out = common::run(dir, ["demo", "--dir", "demo"]);
+    let args = [
+        "demo",
+        "--dir",
+        "demo",
+        "--scans",
+        "6",
+        "--exit",
+        "--grpc-listen",
+        "127.0.0.1:0",
+        "--http-listen",
+        "127.0.0.1:0",
+    ];
+    let out = common::run(dir, args);
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success(), "demo failed:\n{stdout}\n{}", String::from_utf8_lossy(&out.stderr));
     assert!(stdout.contains("AUC"), "demo output lacks AUC:\n{stdout}");
+    assert!(stdout.contains("(6 applied, 0 already in the map)"), "{stdout}");
+    assert!(
+        stdout.contains("grpcurl -plaintext") && stdout.contains("curl -s http://127.0.0.1:"),
+        "{stdout}"
+    );
+    let again = common::run(dir, args);
+    assert!(String::from_utf8_lossy(&again.stdout).contains("(0 applied, 6 already in the map)"));
     for f in ["demo.bgkmap", "truth.bt"] {
         assert!(dir.join("demo").join(f).is_file(), "demo did not write {f}");
     }

@@ -26,7 +26,6 @@ use crate::core::key::BLOCK_CELLS;
 use crate::core::query::{BoxError, BoxQuery, RayHit, StopAt, cast_ray, count_box, query_box, query_points};
 use crate::core::{CellKey, CellState, MapParams, PointFrame, Pose, RangeMode, Thresholds};
 use crate::service::{Ack, MapInfo, MapService, ScanInput, ServiceError, Snapshot};
-use prost::Message as _;
 use std::pin::Pin;
 use std::sync::Arc;
 use std::task::{Context, Poll};
@@ -120,7 +119,7 @@ fn vec3(v: &[f64], field: &str) -> Result<[f64; 3], Status> {
 
 /// Little-endian f32 triplets.
 fn xyz_f32(bytes: &[u8], field: &str) -> Result<Vec<[f32; 3]>, Status> {
-    if bytes.len() % 12 != 0 {
+    if !bytes.len().is_multiple_of(12) {
         return Err(bad(field, format!("length {} is not a multiple of 12", bytes.len())));
     }
     let f = |b: &[u8]| f32::from_le_bytes([b[0], b[1], b[2], b[3]]);

@@ -177,7 +177,8 @@ impl ParamsJson {
 }
 
 async fn create_map(State(st): State<AppState>, Path(map): Path<String>, body: Bytes) -> ApiResult {
-    let p: ParamsJson = if body.iter().all(u8::is_ascii_whitespace) { ParamsJson::default() } else { parse(&body)? };
+    let p: ParamsJson =
+        if body.iter().all(u8::is_ascii_whitespace) { ParamsJson::default() } else { parse(&body)? };
     let info = st.service.create_map(&map, p.to_params()?)?;
     Ok((StatusCode::CREATED, axum::Json(info_json(&info))).into_response())
 }
@@ -225,8 +226,10 @@ async fn insert_scan(
     let (tx, rx) = tokio::sync::oneshot::channel();
     st.service.submit_scan(&map, scan, Box::new(move |r| drop(tx.send(r))))?;
     let ack = rx.await.map_err(|_| ServiceError::ShuttingDown)??;
-    Ok(axum::Json(json!({"applied": ack.applied, "version": ack.version, "dropped_points": ack.dropped_points}))
-        .into_response())
+    Ok(axum::Json(
+        json!({"applied": ack.applied, "version": ack.version, "dropped_points": ack.dropped_points}),
+    )
+    .into_response())
 }
 
 fn scan_from_json(body: &Bytes) -> Result<ScanInput, ApiError> {
@@ -244,7 +247,8 @@ fn scan_from_json(body: &Bytes) -> Result<ScanInput, ApiError> {
 /// A raw PCD body: `?source=…&seq=…[&max_range=…][&frame=world|sensor]`; the pose is the
 /// file's VIEWPOINT.
 fn scan_from_pcd_body(q: &HashMap<String, String>, body: &Bytes) -> Result<ScanInput, ApiError> {
-    let source = q.get("source").cloned().ok_or_else(|| ApiError::bad("query parameter source is required"))?;
+    let source =
+        q.get("source").cloned().ok_or_else(|| ApiError::bad("query parameter source is required"))?;
     let seq = q
         .get("seq")
         .ok_or_else(|| ApiError::bad("query parameter seq is required"))?
@@ -252,14 +256,20 @@ fn scan_from_pcd_body(q: &HashMap<String, String>, body: &Bytes) -> Result<ScanI
         .map_err(|_| ApiError::bad("query parameter seq must be an unsigned integer"))?;
     let max_range = match q.get("max_range") {
         None => None,
-        Some(v) => Some(v.parse::<f64>().map_err(|_| ApiError::bad("query parameter max_range must be a number"))?),
+        Some(v) => {
+            Some(v.parse::<f64>().map_err(|_| ApiError::bad("query parameter max_range must be a number"))?)
+        }
     };
     let cloud = read_pcd(body).map_err(|e| ApiError::bad(e.to_string()))?;
-    let vp = cloud.viewpoint.ok_or_else(|| ApiError::bad("the PCD has no VIEWPOINT line (the sensor pose)"))?;
+    let vp =
+        cloud.viewpoint.ok_or_else(|| ApiError::bad("the PCD has no VIEWPOINT line (the sensor pose)"))?;
     Ok(ScanInput {
         source,
         seq,
-        world_from_sensor: Pose { translation_m: [vp[0], vp[1], vp[2]], rotation_wxyz: [vp[3], vp[4], vp[5], vp[6]] },
+        world_from_sensor: Pose {
+            translation_m: [vp[0], vp[1], vp[2]],
+            rotation_wxyz: [vp[3], vp[4], vp[5], vp[6]],
+        },
         frame: parse_frame(q.get("frame").map(String::as_str))?,
         points: cloud.points,
         max_range_m: max_range,
@@ -423,8 +433,17 @@ async fn metrics(State(st): State<AppState>) -> Response {
     let _ = writeln!(out, "# TYPE bgkmap_scans_total counter");
     for i in st.service.list_maps() {
         for (src, s) in &i.sources {
-            for (what, v) in [("received", s.received), ("applied", s.applied), ("duplicate", s.duplicates), ("rejected", s.rejected)] {
-                let _ = writeln!(out, "bgkmap_scans_total{{map=\"{}\",source=\"{}\",outcome=\"{what}\"}} {v}", i.name, src);
+            for (what, v) in [
+                ("received", s.received),
+                ("applied", s.applied),
+                ("duplicate", s.duplicates),
+                ("rejected", s.rejected),
+            ] {
+                let _ = writeln!(
+                    out,
+                    "bgkmap_scans_total{{map=\"{}\",source=\"{}\",outcome=\"{what}\"}} {v}",
+                    i.name, src
+                );
             }
         }
     }

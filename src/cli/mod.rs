@@ -5,12 +5,16 @@
 mod args;
 mod bench;
 mod build;
+#[cfg(feature = "server")]
 mod demo;
 mod eval_cmd;
 mod export;
+#[cfg(feature = "server")]
+mod ingest;
 pub mod plot;
 #[cfg(feature = "server")]
 pub mod serve;
+mod simulate;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
@@ -40,9 +44,13 @@ enum Command {
     #[command(subcommand)]
     Bench(bench::BenchCommand),
     /// Write simulated LiDAR scans (PCD with VIEWPOINT) and the analytic ground truth (.bt).
-    Simulate(demo::SimulateArgs),
-    /// Simulate a robot in the built-in scene, build its map and evaluate it.
+    Simulate(simulate::SimulateArgs),
+    /// Start the server, stream a simulated robot's scans into map `demo`, print examples.
+    #[cfg(feature = "server")]
     Demo(demo::DemoArgs),
+    /// Stream PCD files to a running server (gRPC), with a progress bar.
+    #[cfg(feature = "server")]
+    Ingest(ingest::IngestArgs),
     /// Run the map server (gRPC and HTTP).
     #[cfg(feature = "server")]
     Serve(serve::ServeArgs),
@@ -56,10 +64,13 @@ pub fn main() -> ExitCode {
         Command::Export(a) => export::run(a),
         Command::Eval(a) => eval_cmd::run(a),
         Command::Bench(b) => bench::run(b),
-        Command::Simulate(a) => demo::run_simulate(a),
+        Command::Simulate(a) => simulate::run_simulate(a),
+        #[cfg(feature = "server")]
         Command::Demo(a) => demo::run_demo(a),
         #[cfg(feature = "server")]
         Command::Serve(a) => serve::run(a),
+        #[cfg(feature = "server")]
+        Command::Ingest(a) => ingest::run(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -77,7 +77,8 @@ impl ServeArgs {
     pub fn resolve(&self) -> Result<ServerConfig> {
         let mut c = match &self.config {
             Some(path) => {
-                let text = std::fs::read_to_string(path).with_context(|| format!("{}: cannot read", path.display()))?;
+                let text = std::fs::read_to_string(path)
+                    .with_context(|| format!("{}: cannot read", path.display()))?;
                 toml::from_str(&text).with_context(|| format!("{}: invalid configuration", path.display()))?
             }
             None => ServerConfig::default(),
@@ -157,7 +158,10 @@ pub async fn start(c: &ServerConfig) -> Result<Running> {
         async move {
             tonic::transport::Server::builder()
                 .add_routes(grpc_routes)
-                .serve_with_incoming_shutdown(tokio_stream::wrappers::TcpListenerStream::new(grpc_listener), stopped(rx))
+                .serve_with_incoming_shutdown(
+                    tokio_stream::wrappers::TcpListenerStream::new(grpc_listener),
+                    stopped(rx),
+                )
                 .await
                 .context("gRPC server")
         }
@@ -192,7 +196,11 @@ pub async fn shutdown_signal() {
 }
 
 pub fn runtime() -> Result<tokio::runtime::Runtime> {
-    tokio::runtime::Builder::new_multi_thread().enable_all().thread_name("bgkmap-io").build().context("tokio runtime")
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .thread_name("bgkmap-io")
+        .build()
+        .context("tokio runtime")
 }
 
 pub fn run(a: ServeArgs) -> Result<()> {

@@ -198,3 +198,121 @@ pub fn parse_csv(csv: &str) -> Vec<(CsvRow, &str)> {
         })
         .collect()
 }
+
+/// A running `bgkmap serve` child process on loopback ports picked by the OS. Killed (SIGKILL)
+/// when dropped unless [`ServeProcess::terminate`] ended it first.
+#[derive(Debug)]
+pub struct ServeProcess {
+    child: Option<std::process::Child>,
+    /// The bound gRPC address (from the `grpc listening on ADDR` line).
+    pub grpc_addr: std::net::SocketAddr,
+    /// The bound HTTP address (from the `http listening on ADDR` line).
+    pub http_addr: std::net::SocketAddr,
+    stderr: std::sync::Arc<std::sync::Mutex<String>>,
+}
+
+/// Starts `bgkmap serve --data-dir DATA_DIR --grpc-listen 127.0.0.1:0 --http-listen 127.0.0.1:0
+/// EXTRA…` and waits (up to 60 s) until it prints both listening addresses.
+pub fn start_serve(data_dir: &Path, extra: &[&str]) -> ServeProcess {
+    use std::io::{BufRead, Read};
+    let mut child = Command::new(env!("CARGO_BIN_EXE_bgkmap"))
+        .arg("serve")
+        .arg("--data-dir")
+        .arg(data_dir)
+        .args(["--grpc-listen", "127.0.0.1:0", "--http-listen", "127.0.0.1:0"])
+        .args(extra)
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let stderr = std::sync::Arc::new(std::sync::Mutex::new(String::new()));
+    let mut err_pipe = child.stderr.take().unwrap();
+    let sink = stderr.clone();
+    std::thread::spawn(move || {
+        let mut buf = [0u8; 4096];
+        while let Ok(n) = err_pipe.read(&mut buf) {
+            if n == 0 {
+                break;
+            }
+            sink.lock().unwrap().push_str(&String::from_utf8_lossy(&buf[..n]));
+        }
+    });
+    let out = child.stdout.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        // Keeps reading to the end so the server never blocks on a full pipe.
+        for line in std::io::BufReader::new(out).lines() {
+            let Ok(line) = line else { break };
+            let _ = tx.send(line);
+        }
+    });
+    let (mut grpc, mut http) = (None, None);
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+    while grpc.is_none() || http.is_none() {
+        let left = deadline.saturating_duration_since(std::time::Instant::now());
+        match rx.recv_timeout(left) {
+            Ok(line) => {
+                if let Some(a) = line.strip_prefix("grpc listening on ") {
+                    grpc = Some(a.trim().parse().unwrap());
+                } else if let Some(a) = line.strip_prefix("http listening on ") {
+                    http = Some(a.trim().parse().unwrap());
+                }
+            }
+            Err(_) => {
+                let _ = child.kill();
+                let status = child.wait().unwrap();
+                panic!(
+                    "bgkmap serve did not report its addresses ({status}); stderr:\n{}",
+                    stderr.lock().unwrap()
+                );
+            }
+        }
+    }
+    ServeProcess { child: Some(child), grpc_addr: grpc.unwrap(), http_addr: http.unwrap(), stderr }
+}
+
+impl ServeProcess {
+    /// `http://ADDR` of the gRPC port.
+    pub fn grpc_url(&self) -> String {
+        format!("http://{}", self.grpc_addr)
+    }
+
+    /// `http://ADDR` of the HTTP port.
+    pub fn http_url(&self) -> String {
+        format!("http://{}", self.http_addr)
+    }
+
+    /// What the server wrote to stderr so far.
+    pub fn stderr(&self) -> String {
+        self.stderr.lock().unwrap().clone()
+    }
+
+    /// Sends SIGTERM and waits (up to 60 s) for the process to exit; returns its status.
+    pub fn terminate(mut self) -> std::process::ExitStatus {
+        let mut child = self.child.take().unwrap();
+        let kill = Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap();
+        assert!(kill.success(), "kill -TERM failed");
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+        loop {
+            if let Some(status) = child.try_wait().unwrap() {
+                return status;
+            }
+            if std::time::Instant::now() > deadline {
+                let _ = child.kill();
+                let _ = child.wait();
+                panic!("bgkmap serve did not exit within 60 s of SIGTERM; stderr:\n{}", self.stderr());
+            }
+            std::thread::sleep(std::time::Duration::from_millis(20));
+        }
+    }
+}
+
+impl Drop for ServeProcess {
+    fn drop(&mut self) {
+        if let Some(mut child) = self.child.take() {
+            let _ = child.kill();
+            let _ = child.wait();
+        }
+    }
+}
