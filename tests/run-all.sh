@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Runs every check and test of bgkmap from a fresh checkout: formatting, lints, docs, the pure
-# core without optional features, then the whole suite (unit, property and integration tests,
-# which start the real binary). Installs nothing system-wide; needs the Rust toolchain with
-# clippy, rustfmt and cargo-nextest (falls back to `cargo test` without nextest).
+# core without optional features, the Rust suite (unit, property and integration tests that
+# start the real binary), then the Python client's tests with grpcurl and curl. Needs the Rust
+# toolchain (clippy, rustfmt; cargo-nextest when present) and python3; tests/python.sh sets up
+# its own virtualenv (and installs curl with apt when missing and running as root).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -25,9 +26,13 @@ RUSTDOCFLAGS="-D warnings" cargo doc --locked --no-deps --quiet
 step "pure core: library tests without optional features"
 cargo test --locked --lib --no-default-features --quiet
 
-step "all tests"
+step "all Rust tests (unit, property, integration against the real binary)"
 if cargo nextest --version >/dev/null 2>&1; then
   cargo nextest run --locked --no-fail-fast
 else
   cargo test --locked --no-fail-fast
 fi
+
+step "Python client, grpcurl and curl against the real server"
+cargo build --locked --quiet
+bash tests/python.sh

@@ -13,6 +13,9 @@ use std::time::Instant;
 pub enum BenchCommand {
     /// Scan integration (training data + evidence + map update); files are loaded before timing.
     Ingest(IngestArgs),
+    /// The map server in-process on loopback: ingest, gRPC / HTTP query throughput and latency.
+    #[cfg(feature = "server")]
+    Server(super::bench_server::ServerBenchArgs),
 }
 
 #[derive(Debug, Args)]
@@ -41,6 +44,8 @@ pub struct IngestArgs {
 pub fn run(cmd: BenchCommand) -> Result<()> {
     match cmd {
         BenchCommand::Ingest(a) => ingest(a),
+        #[cfg(feature = "server")]
+        BenchCommand::Server(a) => super::bench_server::run(a),
     }
 }
 
@@ -129,7 +134,7 @@ fn ingest(a: IngestArgs) -> Result<()> {
 }
 
 /// Nearest-rank percentile (sorts in place); NaN for an empty sample.
-fn percentile(v: &mut [f64], q: f64) -> f64 {
+pub(super) fn percentile(v: &mut [f64], q: f64) -> f64 {
     if v.is_empty() {
         return f64::NAN;
     }

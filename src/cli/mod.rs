@@ -4,6 +4,8 @@
 
 mod args;
 mod bench;
+#[cfg(feature = "server")]
+mod bench_server;
 mod build;
 #[cfg(feature = "server")]
 mod demo;

@@ -217,3 +217,40 @@ pub fn run(a: ServeArgs) -> Result<()> {
         running.shutdown().await
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_example_config_documents_every_key_with_its_default() {
+        let text = include_str!("../../deploy/bgkmap.toml");
+        let parsed: ServerConfig = toml::from_str(text).unwrap();
+        let d = ServerConfig::default();
+        assert_eq!(parsed.data_dir, d.data_dir);
+        assert_eq!((parsed.grpc_listen, parsed.http_listen), (d.grpc_listen, d.http_listen));
+        assert_eq!((parsed.queue_capacity, parsed.threads_per_scan), (d.queue_capacity, d.threads_per_scan));
+        assert_eq!(
+            (parsed.max_points, parsed.max_box_cells, parsed.max_message_bytes),
+            (d.max_points, d.max_box_cells, d.max_message_bytes)
+        );
+        assert!(toml::from_str::<ServerConfig>("bogus = 1").is_err(), "unknown keys are refused");
+    }
+
+    #[test]
+    fn flags_override_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("c.toml");
+        std::fs::write(&path, "queue_capacity = 7\nmax_box_cells = 10\n").unwrap();
+        let args = ServeArgs {
+            config: Some(path),
+            data_dir: None,
+            grpc_listen: None,
+            http_listen: None,
+            queue_capacity: Some(3),
+            max_box_cells: None,
+        };
+        let c = args.resolve().unwrap();
+        assert_eq!((c.queue_capacity, c.max_box_cells), (3, 10));
+    }
+}

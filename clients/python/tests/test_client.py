@@ -300,12 +300,6 @@ def test_cast_rays_agrees(filled: Dict[str, Any], grpc_client: Client, http_clie
     )
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="server bug: the HTTP API parses JSON numbers with serde_json's default best-effort float "
-    "parser (1 ulp off for some 17-digit decimals, e.g. -0.9659258262890683 → -0.9659258262890684); "
-    "enabling serde_json's `float_roundtrip` feature in Cargo.toml fixes it — then remove this marker",
-)
 def test_http_parses_json_numbers_exactly(filled: Dict[str, Any], grpc_client: Client, http_client: Client) -> None:
     """Any float64 sent over HTTP must reach the server as the same float64 gRPC carries."""
     n = 24

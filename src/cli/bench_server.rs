@@ -1,0 +1,563 @@
+//! `bgkmap bench server`: the map server in-process on loopback, driven through its own
+//! transports (gRPC and HTTP JSON), with the in-process query as the reference. Measured figures
+//! only; nothing here asserts on speed.
+
+use super::bench::percentile;
+use super::serve::{Running, ServerConfig, runtime, start};
+use crate::api::pb;
+use crate::sim::{Lidar, SimScan, simulate};
+use anyhow::{Context, Result, bail, ensure};
+use clap::Args;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde_json::{Value, json};
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+use tokio::io::{AsyncBufReadExt, AsyncReadExt, AsyncWriteExt, BufReader};
+use tokio::net::TcpStream;
+use tonic::transport::Channel;
+
+#[derive(Debug, Args)]
+pub struct ServerBenchArgs {
+    /// Simulated scans streamed into map `bench` (built-in room, seed 0).
+    #[arg(long, default_value_t = 24)]
+    pub scans: usize,
+    /// Points per gRPC QueryPoints request (and per in-process query) in the throughput run.
+    #[arg(long, default_value_t = 100_000)]
+    pub batch: usize,
+    /// Sequential single-point QueryPoints calls per latency run (idle, then under ingest).
+    #[arg(long, default_value_t = 2000)]
+    pub latency_samples: usize,
+    /// Print one JSON object.
+    #[arg(long)]
+    pub json: bool,
+}
+
+const MAP: &str = "bench";
+/// Interior of the simulated room (metres): x 0..10, y 0..12, z 0..3.
+const ROOM: [f64; 3] = [10.0, 12.0, 3.0];
+/// Rays per CastRays request and points per HTTP request.
+const RAYS_PER_CALL: usize = 10_000;
+const HTTP_POINTS_PER_CALL: usize = 10_000;
+const RAY_RANGE_M: f64 = 8.0;
+/// A throughput run lasts until both: this much time in calls and this many calls.
+const MIN_BUSY: Duration = Duration::from_secs(1);
+const MIN_CALLS: usize = 5;
+/// Distinct request payloads cycled through in a throughput run.
+const DISTINCT_BATCHES: usize = 4;
+/// Background ingest while measuring latency under ingest: one scan per period.
+const BACKGROUND_PERIOD: Duration = Duration::from_millis(100);
+const MAX_MESSAGE: usize = 256 << 20;
+
+type Client = pb::map_service_client::MapServiceClient<Channel>;
+
+/// The measured figures.
+#[derive(Debug, Clone)]
+struct Report {
+    scans: usize,
+    batch: usize,
+    raw_points: usize,
+    ingest_scans_per_s: f64,
+    ingest_points_per_s: f64,
+    grpc_points_per_s: f64,
+    grpc_single_p50_us: f64,
+    grpc_single_p99_us: f64,
+    grpc_single_p50_us_under_ingest: f64,
+    grpc_single_p99_us_under_ingest: f64,
+    background_scans: u64,
+    grpc_rays_per_s: f64,
+    http_points_per_s: f64,
+    inprocess_points_per_s: f64,
+}
+
+impl Report {
+    fn to_json(&self) -> Value {
+        json!({
+            "bench": "server",
+            "scans": self.scans, "batch": self.batch, "raw_points": self.raw_points,
+            "ingest_scans_per_s": self.ingest_scans_per_s, "ingest_points_per_s": self.ingest_points_per_s,
+            "grpc_points_per_s": self.grpc_points_per_s,
+            "grpc_single_p50_us": self.grpc_single_p50_us, "grpc_single_p99_us": self.grpc_single_p99_us,
+            "grpc_single_p50_us_under_ingest": self.grpc_single_p50_us_under_ingest,
+            "grpc_single_p99_us_under_ingest": self.grpc_single_p99_us_under_ingest,
+            "background_scans_under_ingest": self.background_scans,
+            "grpc_rays_per_s": self.grpc_rays_per_s,
+            "http_points_per_s": self.http_points_per_s,
+            "inprocess_points_per_s": self.inprocess_points_per_s,
+        })
+    }
+
+    fn summary(&self) -> String {
+        format!(
+            "server bench (in-process server on loopback, map of {} simulated scans):\n  \
+             ingest (gRPC InsertScans stream): {:.1} scans/s, {:.3} M raw points/s\n  \
+             gRPC QueryPoints, {} points per call: {:.2} M points/s\n  \
+             gRPC QueryPoints, 1 point per call: p50 {:.0} µs, p99 {:.0} µs; under ingest \
+             ({} background scans at ≤ 10/s): p50 {:.0} µs, p99 {:.0} µs\n  \
+             gRPC CastRays, {RAYS_PER_CALL} rays of {RAY_RANGE_M} m per call: {:.3} M rays/s\n  \
+             HTTP JSON query/points, {HTTP_POINTS_PER_CALL} points per request: {:.3} M points/s\n  \
+             in-process query_points (1 thread), {} points per call: {:.2} M points/s",
+            self.scans,
+            self.ingest_scans_per_s,
+            self.ingest_points_per_s / 1e6,
+            self.batch,
+            self.grpc_points_per_s / 1e6,
+            self.grpc_single_p50_us,
+            self.grpc_single_p99_us,
+            self.background_scans,
+            self.grpc_single_p50_us_under_ingest,
+            self.grpc_single_p99_us_under_ingest,
+            self.grpc_rays_per_s / 1e6,
+            self.http_points_per_s / 1e6,
+            self.batch,
+            self.inprocess_points_per_s / 1e6,
+        )
+    }
+}
+
+pub fn run(a: ServerBenchArgs) -> Result<()> {
+    let report = measure(&a)?;
+    if a.json {
+        println!("{}", report.to_json());
+    } else {
+        println!("{}", report.summary());
+    }
+    Ok(())
+}
+
+/// Runs the whole benchmark and returns the JSON object `--json` prints.
+pub fn run_bench(a: &ServerBenchArgs) -> Result<Value> {
+    Ok(measure(a)?.to_json())
+}
+
+fn measure(a: &ServerBenchArgs) -> Result<Report> {
+    ensure!(a.scans > 0, "--scans must be > 0");
+    ensure!(a.batch > 0, "--batch must be > 0");
+    ensure!(a.latency_samples > 0, "--latency-samples must be > 0");
+    // Declared before the runtime so it is removed after the server has stopped.
+    let dir = TempDir::new()?;
+    let config = ServerConfig {
+        data_dir: dir.0.clone(),
+        grpc_listen: SocketAddr::from(([127, 0, 0, 1], 0)),
+        http_listen: SocketAddr::from(([127, 0, 0, 1], 0)),
+        ..Default::default()
+    };
+    let (_, sim) = simulate(0, a.scans, &Lidar::default());
+    runtime()?.block_on(async {
+        let running = start(&config).await?;
+        let report = measure_running(&running, a, &sim).await;
+        let stopped = running.shutdown().await;
+        let report = report?;
+        stopped?;
+        Ok(report)
+    })
+}
+
+async fn measure_running(running: &Running, a: &ServerBenchArgs, sim: &[SimScan]) -> Result<Report> {
+    let mut client = connect(running.grpc_addr).await?;
+    let create = pb::CreateMapRequest { map: MAP.into(), params: Some(pb::MapParams::default()) };
+    client.create_map(create).await.context("creating map bench")?;
+
+    // Ingest: every scan over one client stream; the server answers once all are applied.
+    let requests: Vec<pb::InsertScanRequest> =
+        sim.iter().enumerate().map(|(i, s)| scan_request("bench-robot", i as u64 + 1, s)).collect();
+    let raw_points: usize = sim.iter().map(|s| s.points_world.len()).sum();
+    let t0 = Instant::now();
+    let summary =
+        client.insert_scans(tokio_stream::iter(requests)).await.context("InsertScans")?.into_inner();
+    let ingest_s = t0.elapsed().as_secs_f64();
+    ensure!(summary.applied == sim.len() as u64, "ingest applied {} of {} scans", summary.applied, sim.len());
+
+    let mut rng = ChaCha8Rng::seed_from_u64(0x6267_6b6d);
+    let grpc_points_per_s = grpc_points(&mut client, a.batch, &mut rng).await?;
+    let (idle_p50, idle_p99) = {
+        let mut us = single_point_latencies(&mut client, a.latency_samples, &mut rng).await?;
+        (percentile(&mut us, 0.5), percentile(&mut us, 0.99))
+    };
+    let (busy_p50, busy_p99, background_scans) =
+        latencies_under_ingest(running.grpc_addr, &mut client, a.latency_samples, sim, &mut rng).await?;
+    let grpc_rays_per_s = grpc_rays(&mut client, &mut rng).await?;
+    let http_points_per_s = http_points(running.http_addr, &mut rng).await?;
+    let snap = running.service.snapshot(MAP)?;
+    let batches = random_batches(a.batch, &mut rng);
+    let inprocess_points_per_s = tokio::task::spawn_blocking(move || inprocess_points(&snap, &batches))
+        .await
+        .context("in-process query task")?;
+
+    Ok(Report {
+        scans: sim.len(),
+        batch: a.batch,
+        raw_points,
+        ingest_scans_per_s: sim.len() as f64 / ingest_s,
+        ingest_points_per_s: raw_points as f64 / ingest_s,
+        grpc_points_per_s,
+        grpc_single_p50_us: idle_p50,
+        grpc_single_p99_us: idle_p99,
+        grpc_single_p50_us_under_ingest: busy_p50,
+        grpc_single_p99_us_under_ingest: busy_p99,
+        background_scans,
+        grpc_rays_per_s,
+        http_points_per_s,
+        inprocess_points_per_s,
+    })
+}
+
+async fn connect(addr: SocketAddr) -> Result<Client> {
+    Ok(Client::connect(format!("http://{addr}"))
+        .await
+        .with_context(|| format!("connecting to gRPC {addr}"))?
+        .max_decoding_message_size(MAX_MESSAGE)
+        .max_encoding_message_size(MAX_MESSAGE))
+}
+
+fn scan_request(source: &str, seq: u64, s: &SimScan) -> pb::InsertScanRequest {
+    pb::InsertScanRequest {
+        map: MAP.into(),
+        scan: Some(pb::Scan {
+            source: source.into(),
+            seq,
+            world_from_sensor: Some(pb::Pose {
+                translation: s.origin.to_vec(),
+                rotation: vec![1.0, 0.0, 0.0, 0.0],
+            }),
+            frame: pb::Frame::World as i32,
+            xyz_f32: s.points_world.iter().flat_map(|p| p.iter().flat_map(|v| v.to_le_bytes())).collect(),
+            max_range: None,
+        }),
+    }
+}
+
+/// Calls counted and time spent inside them, for a throughput run.
+#[derive(Debug, Default)]
+struct Meter {
+    calls: usize,
+    items: usize,
+    busy: Duration,
+}
+
+impl Meter {
+    fn done(&self) -> bool {
+        self.calls >= MIN_CALLS && self.busy >= MIN_BUSY
+    }
+
+    fn add(&mut self, items: usize, t0: Instant) {
+        self.busy += t0.elapsed();
+        self.calls += 1;
+        self.items += items;
+    }
+
+    fn per_s(&self) -> f64 {
+        self.items as f64 / self.busy.as_secs_f64()
+    }
+}
+
+fn random_point(rng: &mut ChaCha8Rng) -> [f64; 3] {
+    ROOM.map(|extent| extent * rng.random::<f64>())
+}
+
+/// A uniformly random unit vector (rejection sampling in the unit ball).
+fn random_direction(rng: &mut ChaCha8Rng) -> [f64; 3] {
+    loop {
+        let v = [0; 3].map(|_| 2.0 * rng.random::<f64>() - 1.0);
+        let n2: f64 = v.iter().map(|x| x * x).sum();
+        if n2 > 1e-6 && n2 <= 1.0 {
+            let n = n2.sqrt();
+            return v.map(|x| x / n);
+        }
+    }
+}
+
+/// [`DISTINCT_BATCHES`] batches of `n` random points inside the room.
+fn random_batches(n: usize, rng: &mut ChaCha8Rng) -> Vec<Vec<[f64; 3]>> {
+    (0..DISTINCT_BATCHES).map(|_| (0..n).map(|_| random_point(rng)).collect()).collect()
+}
+
+fn xyz_f32(points: &[[f64; 3]]) -> Vec<u8> {
+    points.iter().flat_map(|p| p.iter().flat_map(|&v| (v as f32).to_le_bytes())).collect()
+}
+
+fn points_request(xyz: Vec<u8>) -> pb::QueryPointsRequest {
+    pb::QueryPointsRequest { map: MAP.into(), xyz_f32: xyz, thresholds: None }
+}
+
+/// gRPC QueryPoints throughput, `batch` points per call (after one untimed call).
+async fn grpc_points(client: &mut Client, batch: usize, rng: &mut ChaCha8Rng) -> Result<f64> {
+    let payloads: Vec<Vec<u8>> = random_batches(batch, rng).iter().map(|b| xyz_f32(b)).collect();
+    let warm = client.query_points(points_request(payloads[0].clone())).await.context("QueryPoints")?;
+    ensure!(warm.get_ref().probability.len() == batch, "QueryPoints answered the wrong number of points");
+    let mut meter = Meter::default();
+    for xyz in payloads.iter().cycle() {
+        let req = points_request(xyz.clone());
+        let t0 = Instant::now();
+        let answer = client.query_points(req).await.context("QueryPoints")?;
+        meter.add(answer.get_ref().probability.len(), t0);
+        if meter.done() {
+            break;
+        }
+    }
+    Ok(meter.per_s())
+}
+
+/// Round-trip times (µs) of `n` sequential one-point QueryPoints calls.
+async fn single_point_latencies(client: &mut Client, n: usize, rng: &mut ChaCha8Rng) -> Result<Vec<f64>> {
+    let points: Vec<[f64; 3]> = (0..n).map(|_| random_point(rng)).collect();
+    client.query_points(points_request(xyz_f32(&points[..1]))).await.context("QueryPoints")?;
+    let mut us = Vec::with_capacity(n);
+    for p in &points {
+        let req = points_request(xyz_f32(std::slice::from_ref(p)));
+        let t0 = Instant::now();
+        client.query_points(req).await.context("QueryPoints")?;
+        us.push(t0.elapsed().as_secs_f64() * 1e6);
+    }
+    Ok(us)
+}
+
+/// Single-point latencies while another connection inserts a scan every [`BACKGROUND_PERIOD`]
+/// (the simulated scans again, as source `bench-background` with fresh seq numbers):
+/// (p50 µs, p99 µs, background scans applied).
+async fn latencies_under_ingest(
+    grpc: SocketAddr,
+    client: &mut Client,
+    n: usize,
+    sim: &[SimScan],
+    rng: &mut ChaCha8Rng,
+) -> Result<(f64, f64, u64)> {
+    let requests: Vec<pb::InsertScanRequest> =
+        sim.iter().enumerate().map(|(i, s)| scan_request("bench-background", i as u64 + 1, s)).collect();
+    let mut writer = connect(grpc).await?;
+    let (stop, mut stopped) = tokio::sync::watch::channel(false);
+    let background = tokio::spawn(async move {
+        let mut tick = tokio::time::interval(BACKGROUND_PERIOD);
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        let mut applied = 0u64;
+        for (round, template) in (0u64..).zip(requests.iter().cycle()) {
+            tokio::select! {
+                biased;
+                _ = stopped.changed() => break,
+                _ = tick.tick() => {}
+            }
+            let mut req = template.clone();
+            if let Some(scan) = req.scan.as_mut() {
+                scan.seq = round + 1;
+            }
+            if writer.insert_scan(req).await.context("background InsertScan")?.get_ref().applied {
+                applied += 1;
+            }
+        }
+        anyhow::Ok(applied)
+    });
+    let measured = single_point_latencies(client, n, rng).await;
+    let _ = stop.send(true);
+    let applied = background.await.context("background ingest task")?;
+    let mut us = measured?;
+    let applied = applied?;
+    Ok((percentile(&mut us, 0.5), percentile(&mut us, 0.99), applied))
+}
+
+/// gRPC CastRays throughput: [`RAYS_PER_CALL`] rays of [`RAY_RANGE_M`] from random origins in
+/// the room, in random directions.
+async fn grpc_rays(client: &mut Client, rng: &mut ChaCha8Rng) -> Result<f64> {
+    let batches: Vec<Vec<pb::Ray>> = (0..DISTINCT_BATCHES)
+        .map(|_| {
+            (0..RAYS_PER_CALL)
+                .map(|_| pb::Ray {
+                    origin: random_point(rng).to_vec(),
+                    direction: random_direction(rng).to_vec(),
+                    max_range: RAY_RANGE_M,
+                })
+                .collect()
+        })
+        .collect();
+    let request = |rays: &Vec<pb::Ray>| pb::CastRaysRequest {
+        map: MAP.into(),
+        rays: rays.clone(),
+        stop_at: pb::StopAt::Occupied as i32,
+        thresholds: None,
+    };
+    let warm = client.cast_rays(request(&batches[0])).await.context("CastRays")?;
+    ensure!(warm.get_ref().results.len() == RAYS_PER_CALL, "CastRays answered the wrong number of rays");
+    let mut meter = Meter::default();
+    for rays in batches.iter().cycle() {
+        let req = request(rays);
+        let t0 = Instant::now();
+        let answer = client.cast_rays(req).await.context("CastRays")?;
+        meter.add(answer.get_ref().results.len(), t0);
+        if meter.done() {
+            break;
+        }
+    }
+    Ok(meter.per_s())
+}
+
+/// HTTP JSON `POST /v1/maps/bench/query/points` throughput over one keep-alive connection.
+async fn http_points(http: SocketAddr, rng: &mut ChaCha8Rng) -> Result<f64> {
+    let bodies: Vec<Vec<u8>> = random_batches(HTTP_POINTS_PER_CALL, rng)
+        .iter()
+        .map(|b| {
+            let pts: Vec<[f32; 3]> = b.iter().map(|p| p.map(|v| v as f32)).collect();
+            json!({ "points": pts }).to_string().into_bytes()
+        })
+        .collect();
+    let path = format!("/v1/maps/{MAP}/query/points");
+    let mut conn = HttpConnection::connect(http).await?;
+    let warm = conn.post_json(&path, &bodies[0]).await?;
+    let warm: Value = serde_json::from_slice(&warm).context("query/points: invalid JSON answer")?;
+    let answered = warm["results"].as_array().map_or(0, Vec::len);
+    ensure!(answered == HTTP_POINTS_PER_CALL, "query/points answered {answered} points");
+    let mut meter = Meter::default();
+    for body in bodies.iter().cycle() {
+        let t0 = Instant::now();
+        conn.post_json(&path, body).await?;
+        meter.add(HTTP_POINTS_PER_CALL, t0);
+        if meter.done() {
+            break;
+        }
+    }
+    Ok(meter.per_s())
+}
+
+/// The reference: [`crate::core::query::query_points`] on the service's snapshot, one thread.
+fn inprocess_points(snap: &crate::service::Snapshot, batches: &[Vec<[f64; 3]>]) -> f64 {
+    let th = snap.map.params().thresholds;
+    let mut meter = Meter::default();
+    for points in batches.iter().cycle() {
+        let t0 = Instant::now();
+        let answers = std::hint::black_box(crate::core::query::query_points(&snap.map, points, &th));
+        meter.add(answers.len(), t0);
+        if meter.done() {
+            break;
+        }
+    }
+    meter.per_s()
+}
+
+/// A minimal HTTP/1.1 client: one keep-alive connection, `Content-Length` bodies only.
+#[derive(Debug)]
+struct HttpConnection {
+    host: SocketAddr,
+    stream: BufReader<TcpStream>,
+}
+
+/// Longest response head accepted.
+const MAX_HEAD_BYTES: usize = 64 << 10;
+
+impl HttpConnection {
+    async fn connect(host: SocketAddr) -> Result<Self> {
+        let stream = TcpStream::connect(host).await.with_context(|| format!("connecting to HTTP {host}"))?;
+        stream.set_nodelay(true)?;
+        Ok(Self { host, stream: BufReader::new(stream) })
+    }
+
+    /// POSTs a JSON body; the response body, which must come with status 200.
+    async fn post_json(&mut self, path: &str, body: &[u8]) -> Result<Vec<u8>> {
+        let head = format!(
+            "POST {path} HTTP/1.1\r\nHost: {}\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\r\n",
+            self.host,
+            body.len()
+        );
+        let w = self.stream.get_mut();
+        w.write_all(head.as_bytes()).await?;
+        w.write_all(body).await?;
+        w.flush().await?;
+
+        let mut line = String::new();
+        let mut head_bytes = 0;
+        let mut status = None;
+        let mut length = None;
+        loop {
+            line.clear();
+            let n = self.stream.read_line(&mut line).await.context("reading the HTTP response")?;
+            ensure!(n > 0, "HTTP connection closed by the server");
+            head_bytes += n;
+            ensure!(head_bytes <= MAX_HEAD_BYTES, "HTTP response head longer than {MAX_HEAD_BYTES} bytes");
+            let text = line.trim_end_matches(['\r', '\n']);
+            if status.is_none() {
+                let code = text
+                    .strip_prefix("HTTP/1.1 ")
+                    .and_then(|r| r.get(..3))
+                    .and_then(|c| c.parse::<u16>().ok());
+                status = Some(code.with_context(|| format!("bad HTTP status line {text:?}"))?);
+                continue;
+            }
+            if text.is_empty() {
+                break;
+            }
+            let Some((name, value)) = text.split_once(':') else { bail!("bad HTTP header line {text:?}") };
+            if name.eq_ignore_ascii_case("content-length") {
+                length = Some(value.trim().parse::<usize>().context("bad Content-Length")?);
+            } else if name.eq_ignore_ascii_case("transfer-encoding") {
+                bail!(
+                    "HTTP response with Transfer-Encoding {:?} (only Content-Length is read)",
+                    value.trim()
+                );
+            }
+        }
+        let length = length.context("HTTP response without Content-Length")?;
+        let mut answer = vec![0; length];
+        self.stream.read_exact(&mut answer).await.context("reading the HTTP response body")?;
+        if status != Some(200) {
+            bail!("POST {path}: HTTP {status:?}: {}", String::from_utf8_lossy(&answer));
+        }
+        Ok(answer)
+    }
+}
+
+/// A fresh directory under the system temp dir, removed (with its contents) on drop.
+#[derive(Debug)]
+struct TempDir(PathBuf);
+
+impl TempDir {
+    fn new() -> Result<Self> {
+        static NEXT: AtomicU64 = AtomicU64::new(0);
+        let nanos = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.subsec_nanos());
+        let name = format!(
+            "bgkmap-bench-server-{}-{nanos}-{}",
+            std::process::id(),
+            NEXT.fetch_add(1, Ordering::Relaxed)
+        );
+        let path = std::env::temp_dir().join(name);
+        std::fs::create_dir_all(std::env::temp_dir())?;
+        std::fs::create_dir(&path).with_context(|| format!("{}: cannot create", path.display()))?;
+        Ok(Self(path))
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tiny_server_bench_reports_every_figure() {
+        let a = ServerBenchArgs { scans: 2, batch: 1000, latency_samples: 20, json: true };
+        let v = run_bench(&a).unwrap();
+        for key in [
+            "ingest_scans_per_s",
+            "ingest_points_per_s",
+            "grpc_points_per_s",
+            "grpc_single_p50_us",
+            "grpc_single_p99_us",
+            "grpc_single_p50_us_under_ingest",
+            "grpc_single_p99_us_under_ingest",
+            "grpc_rays_per_s",
+            "http_points_per_s",
+            "inprocess_points_per_s",
+            "batch",
+            "scans",
+        ] {
+            let x = v[key].as_f64().unwrap_or_else(|| panic!("{key} missing in {v}"));
+            assert!(x.is_finite() && x > 0.0, "{key} = {x}");
+        }
+        assert_eq!(v["batch"], 1000);
+        assert_eq!(v["scans"], 2);
+    }
+}
