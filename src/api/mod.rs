@@ -13,6 +13,7 @@ pub mod pb {
     pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("bgkmap_descriptor");
 }
 
+pub mod codec;
 pub mod grpc;
 pub mod http;
 pub mod status;

@@ -53,86 +53,19 @@ const MAX_MESSAGE: usize = 256 << 20;
 
 type Client = pb::map_service_client::MapServiceClient<Channel>;
 
-/// The measured figures.
-#[derive(Debug, Clone)]
-struct Report {
-    scans: usize,
-    batch: usize,
-    raw_points: usize,
-    ingest_scans_per_s: f64,
-    ingest_points_per_s: f64,
-    grpc_points_per_s: f64,
-    grpc_single_p50_us: f64,
-    grpc_single_p99_us: f64,
-    grpc_single_p50_us_under_ingest: f64,
-    grpc_single_p99_us_under_ingest: f64,
-    background_scans: u64,
-    grpc_rays_per_s: f64,
-    http_points_per_s: f64,
-    inprocess_points_per_s: f64,
-}
-
-impl Report {
-    fn to_json(&self) -> Value {
-        json!({
-            "bench": "server",
-            "scans": self.scans, "batch": self.batch, "raw_points": self.raw_points,
-            "ingest_scans_per_s": self.ingest_scans_per_s, "ingest_points_per_s": self.ingest_points_per_s,
-            "grpc_points_per_s": self.grpc_points_per_s,
-            "grpc_single_p50_us": self.grpc_single_p50_us, "grpc_single_p99_us": self.grpc_single_p99_us,
-            "grpc_single_p50_us_under_ingest": self.grpc_single_p50_us_under_ingest,
-            "grpc_single_p99_us_under_ingest": self.grpc_single_p99_us_under_ingest,
-            "background_scans_under_ingest": self.background_scans,
-            "grpc_rays_per_s": self.grpc_rays_per_s,
-            "http_points_per_s": self.http_points_per_s,
-            "inprocess_points_per_s": self.inprocess_points_per_s,
-        })
-    }
-
-    fn summary(&self) -> String {
-        format!(
-            "server bench (in-process server on loopback, map of {} simulated scans):\n  \
-             ingest (gRPC InsertScans stream): {:.1} scans/s, {:.3} M raw points/s\n  \
-             gRPC QueryPoints, {} points per call: {:.2} M points/s\n  \
-             gRPC QueryPoints, 1 point per call: p50 {:.0} µs, p99 {:.0} µs; under ingest \
-             ({} background scans at ≤ 10/s): p50 {:.0} µs, p99 {:.0} µs\n  \
-             gRPC CastRays, {RAYS_PER_CALL} rays of {RAY_RANGE_M} m per call: {:.3} M rays/s\n  \
-             HTTP JSON query/points, {HTTP_POINTS_PER_CALL} points per request: {:.3} M points/s\n  \
-             in-process query_points (1 thread), {} points per call: {:.2} M points/s",
-            self.scans,
-            self.ingest_scans_per_s,
-            self.ingest_points_per_s / 1e6,
-            self.batch,
-            self.grpc_points_per_s / 1e6,
-            self.grpc_single_p50_us,
-            self.grpc_single_p99_us,
-            self.background_scans,
-            self.grpc_single_p50_us_under_ingest,
-            self.grpc_single_p99_us_under_ingest,
-            self.grpc_rays_per_s / 1e6,
-            self.http_points_per_s / 1e6,
-            self.batch,
-            self.inprocess_points_per_s / 1e6,
-        )
-    }
-}
-
 pub fn run(a: ServerBenchArgs) -> Result<()> {
-    let report = measure(&a)?;
+    let v = run_bench(&a)?;
     if a.json {
-        println!("{}", report.to_json());
+        println!("{v}");
     } else {
-        println!("{}", report.summary());
+        println!("{}", summary(&v));
     }
     Ok(())
 }
 
-/// Runs the whole benchmark and returns the JSON object `--json` prints.
+/// Runs the whole benchmark (server started and stopped here, in a temporary data directory)
+/// and returns the JSON object `--json` prints.
 pub fn run_bench(a: &ServerBenchArgs) -> Result<Value> {
-    Ok(measure(a)?.to_json())
-}
-
-fn measure(a: &ServerBenchArgs) -> Result<Report> {
     ensure!(a.scans > 0, "--scans must be > 0");
     ensure!(a.batch > 0, "--batch must be > 0");
     ensure!(a.latency_samples > 0, "--latency-samples must be > 0");
@@ -147,7 +80,7 @@ fn measure(a: &ServerBenchArgs) -> Result<Report> {
     let (_, sim) = simulate(0, a.scans, &Lidar::default());
     runtime()?.block_on(async {
         let running = start(&config).await?;
-        let report = measure_running(&running, a, &sim).await;
+        let report = measure(&running, a, &sim).await;
         let stopped = running.shutdown().await;
         let report = report?;
         stopped?;
@@ -155,7 +88,38 @@ fn measure(a: &ServerBenchArgs) -> Result<Report> {
     })
 }
 
-async fn measure_running(running: &Running, a: &ServerBenchArgs, sim: &[SimScan]) -> Result<Report> {
+/// The readable form of [`run_bench`]'s answer.
+fn summary(v: &Value) -> String {
+    let f = |key: &str| v[key].as_f64().unwrap_or(f64::NAN);
+    let mega = |key: &str| f(key) / 1e6;
+    format!(
+        "server bench (in-process server on loopback, map of {} simulated scans):\n  \
+         ingest (gRPC InsertScans stream): {:.1} scans/s, {:.3} M raw points/s\n  \
+         gRPC QueryPoints, {} points per call: {:.2} M points/s\n  \
+         gRPC QueryPoints, 1 point per call: p50 {:.0} µs, p99 {:.0} µs; under ingest \
+         ({} background scans at ≤ 10/s): p50 {:.0} µs, p99 {:.0} µs\n  \
+         gRPC CastRays, {RAYS_PER_CALL} rays of {RAY_RANGE_M} m per call: {:.3} M rays/s\n  \
+         HTTP JSON query/points, {HTTP_POINTS_PER_CALL} points per request: {:.3} M points/s\n  \
+         in-process query_points (1 thread), {} points per call: {:.2} M points/s",
+        v["scans"],
+        f("ingest_scans_per_s"),
+        mega("ingest_points_per_s"),
+        v["batch"],
+        mega("grpc_points_per_s"),
+        f("grpc_single_p50_us"),
+        f("grpc_single_p99_us"),
+        v["background_scans_under_ingest"],
+        f("grpc_single_p50_us_under_ingest"),
+        f("grpc_single_p99_us_under_ingest"),
+        mega("grpc_rays_per_s"),
+        mega("http_points_per_s"),
+        v["batch"],
+        mega("inprocess_points_per_s"),
+    )
+}
+
+/// Every measurement against a running server, in order.
+async fn measure(running: &Running, a: &ServerBenchArgs, sim: &[SimScan]) -> Result<Value> {
     let mut client = connect(running.grpc_addr).await?;
     let create = pb::CreateMapRequest { map: MAP.into(), params: Some(pb::MapParams::default()) };
     client.create_map(create).await.context("creating map bench")?;
@@ -165,10 +129,15 @@ async fn measure_running(running: &Running, a: &ServerBenchArgs, sim: &[SimScan]
         sim.iter().enumerate().map(|(i, s)| scan_request("bench-robot", i as u64 + 1, s)).collect();
     let raw_points: usize = sim.iter().map(|s| s.points_world.len()).sum();
     let t0 = Instant::now();
-    let summary =
+    let streamed =
         client.insert_scans(tokio_stream::iter(requests)).await.context("InsertScans")?.into_inner();
     let ingest_s = t0.elapsed().as_secs_f64();
-    ensure!(summary.applied == sim.len() as u64, "ingest applied {} of {} scans", summary.applied, sim.len());
+    ensure!(
+        streamed.applied == sim.len() as u64,
+        "ingest applied {} of {} scans",
+        streamed.applied,
+        sim.len()
+    );
 
     let mut rng = ChaCha8Rng::seed_from_u64(0x6267_6b6d);
     let grpc_points_per_s = grpc_points(&mut client, a.batch, &mut rng).await?;
@@ -186,22 +155,19 @@ async fn measure_running(running: &Running, a: &ServerBenchArgs, sim: &[SimScan]
         .await
         .context("in-process query task")?;
 
-    Ok(Report {
-        scans: sim.len(),
-        batch: a.batch,
-        raw_points,
-        ingest_scans_per_s: sim.len() as f64 / ingest_s,
-        ingest_points_per_s: raw_points as f64 / ingest_s,
-        grpc_points_per_s,
-        grpc_single_p50_us: idle_p50,
-        grpc_single_p99_us: idle_p99,
-        grpc_single_p50_us_under_ingest: busy_p50,
-        grpc_single_p99_us_under_ingest: busy_p99,
-        background_scans,
-        grpc_rays_per_s,
-        http_points_per_s,
-        inprocess_points_per_s,
-    })
+    Ok(json!({
+        "bench": "server",
+        "scans": sim.len(), "batch": a.batch, "raw_points": raw_points,
+        "ingest_scans_per_s": sim.len() as f64 / ingest_s,
+        "ingest_points_per_s": raw_points as f64 / ingest_s,
+        "grpc_points_per_s": grpc_points_per_s,
+        "grpc_single_p50_us": idle_p50, "grpc_single_p99_us": idle_p99,
+        "grpc_single_p50_us_under_ingest": busy_p50, "grpc_single_p99_us_under_ingest": busy_p99,
+        "background_scans_under_ingest": background_scans,
+        "grpc_rays_per_s": grpc_rays_per_s,
+        "http_points_per_s": http_points_per_s,
+        "inprocess_points_per_s": inprocess_points_per_s,
+    }))
 }
 
 async fn connect(addr: SocketAddr) -> Result<Client> {

@@ -390,6 +390,24 @@ def test_reflection_v1_and_v1alpha(server: Server) -> None:
             assert b"bgkmap.v1.MapService" in answers[0] and b"grpc.health.v1.Health" in answers[0]
 
 
+def test_malformed_protobuf_is_invalid_argument(filled: Dict[str, Any], server: Server, grpc_client: Client) -> None:
+    """Bytes that are not a protobuf message get INVALID_ARGUMENT and change nothing."""
+    name = "wall_g"
+    before = grpc_client.get_map(name)["version"]
+    with grpc.insecure_channel(server.grpc_address) as channel:
+        for method in ("InsertScan", "QueryPoints"):
+            call = channel.unary_unary(
+                f"/bgkmap.v1.MapService/{method}",
+                request_serializer=lambda b: b,
+                response_deserializer=lambda b: b,
+            )
+            with pytest.raises(grpc.RpcError) as err:
+                call(b"\x0a\xff\xff\xff\xff\x0f", timeout=30)  # field 1 with a length past the end
+            assert err.value.code() == grpc.StatusCode.INVALID_ARGUMENT, err.value
+            assert "malformed protobuf" in (err.value.details() or "")
+    assert grpc_client.get_map(name)["version"] == before
+
+
 def test_non_finite_points_are_dropped_alike(grpc_client: Client, http_client: Client) -> None:
     pts = wall_and_floor(0.1)
     pts[::10, 1] = np.nan
