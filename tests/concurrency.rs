@@ -1,0 +1,97 @@
+#![allow(clippy::unwrap_used)]
+//! Many query clients while scans stream in over gRPC: every answer must be the answer of some
+//! whole number of applied scans — never of a partly applied scan.
+#![cfg(feature = "server")]
+
+mod common;
+
+use bgkmap::api::pb;
+use bgkmap::api::pb::map_service_client::MapServiceClient;
+use bgkmap::core::query::query_points;
+use bgkmap::core::{EvidenceMap, Integrator, MapParams};
+use bgkmap::sim::{Lidar, simulate};
+
+fn packed(points: &[[f32; 3]]) -> Vec<u8> {
+    points.iter().flat_map(|p| p.iter().flat_map(|v| v.to_le_bytes())).collect()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn concurrent_queries_see_whole_scans_only() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = common::start_serve(dir.path(), &[]);
+    let (_, scans) = simulate(0, 8, &Lidar::default());
+    // Query points along the robot's route and at the walls, where scans change the answers.
+    let probe: Vec<[f32; 3]> =
+        (0..400).map(|i| [0.05 + (i % 20) as f32 * 0.5, 0.05 + (i / 20) as f32 * 0.6, 0.7]).collect();
+    let probe64: Vec<[f64; 3]> = probe.iter().map(|p| p.map(f64::from)).collect();
+    // The expected answers after each whole number of scans, from an offline build.
+    let params = MapParams::default();
+    let mut map = EvidenceMap::new(params);
+    let mut integ = Integrator::new(params);
+    let th = params.thresholds;
+    let answers = |m: &EvidenceMap| -> Vec<f64> {
+        query_points(m, &probe64, &th).iter().map(|a| a.unwrap().estimate.probability).collect()
+    };
+    let mut expected = vec![answers(&map)];
+    for s in &scans {
+        integ.integrate(&mut map, &s.points_world, s.origin, 1);
+        expected.push(answers(&map));
+    }
+
+    let mut client = MapServiceClient::connect(server.grpc_url()).await.unwrap();
+    client
+        .create_map(pb::CreateMapRequest { map: "m".into(), params: Some(pb::MapParams::default()) })
+        .await
+        .unwrap();
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let mut readers = Vec::new();
+    for _ in 0..4 {
+        let (url, xyz, stop) = (server.grpc_url(), packed(&probe), stop.clone());
+        readers.push(tokio::spawn(async move {
+            let mut c = MapServiceClient::connect(url).await.unwrap();
+            let mut seen = Vec::new();
+            while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                let req = pb::QueryPointsRequest { map: "m".into(), xyz_f32: xyz.clone(), thresholds: None };
+                let r = c.query_points(req).await.unwrap().into_inner();
+                seen.push((r.version, r.probability));
+            }
+            seen
+        }));
+    }
+    let requests: Vec<pb::InsertScanRequest> = scans
+        .iter()
+        .enumerate()
+        .map(|(i, s)| pb::InsertScanRequest {
+            map: "m".into(),
+            scan: Some(pb::Scan {
+                source: "robot".into(),
+                seq: i as u64 + 1,
+                world_from_sensor: Some(pb::Pose {
+                    translation: s.origin.to_vec(),
+                    rotation: vec![1.0, 0.0, 0.0, 0.0],
+                }),
+                frame: pb::Frame::World as i32,
+                xyz_f32: packed(&s.points_world),
+                max_range: None,
+            }),
+        })
+        .collect();
+    let summary = client.insert_scans(tokio_stream::iter(requests)).await.unwrap().into_inner();
+    assert_eq!(summary.applied, scans.len() as u64);
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    let mut versions = std::collections::BTreeSet::new();
+    let mut total = 0;
+    for r in readers {
+        for (version, probs) in r.await.unwrap() {
+            assert_eq!(
+                probs, expected[version as usize],
+                "answer at version {version} is not a whole-scan state"
+            );
+            versions.insert(version);
+            total += 1;
+        }
+    }
+    assert!(total >= 4, "readers answered {total} times");
+    assert!(versions.len() >= 2, "readers saw versions {versions:?}: queries did not overlap ingest");
+    assert_eq!(server.terminate().code(), Some(0));
+}
