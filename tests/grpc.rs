@@ -323,8 +323,9 @@ async fn grpc_answers_equal_the_core_and_survive_a_restart() {
     // With a box: the same cells as the box query.
     let (min, max) = ([4.0, 1.0, 0.0], [6.5, 3.0, 1.5]);
     let q = BoxQuery { min_world: min, max_world: max, state: None, coarsen: 0 };
-    let want: Vec<CellKey> =
+    let mut want: Vec<CellKey> =
         query_box(&reference, &q, &th, 4_000_000).unwrap().iter().map(|c| c.min_cell).collect();
+    want.sort_unstable(); // the box query walks z-major; the export is in key order
     let req =
         pb::ExportRequest { map: "room".into(), min: min.to_vec(), max: max.to_vec(), thresholds: None };
     let mut chunks = client.export(req).await.unwrap().into_inner();
@@ -332,7 +333,8 @@ async fn grpc_answers_equal_the_core_and_survive_a_restart() {
     while let Some(chunk) = chunks.message().await.unwrap() {
         boxed.extend(chunk.cell.chunks(3).map(key));
     }
-    assert_eq!(boxed, want);
+    assert_eq!(boxed.len(), want.len());
+    assert!(boxed == want, "the boxed export differs from the box query's cells");
 
     // A duplicate (source, seq) is acknowledged, not applied.
     let before = state_of(&mut client, "room").await;
@@ -514,9 +516,8 @@ async fn bad_requests_are_refused_with_the_field_named_and_leave_the_map_unchang
         Code::InvalidArgument,
         &["limit of 1000000"],
     );
-    // Coarsened, the same box fits.
-    let coarse =
-        pb::QueryBoxRequest { coarsen: 5, counts_only: true, ..qbox(vec![-100.0; 3], vec![100.0; 3]) };
+    // Coarsened, a box of 15.6 M cells fits (250³ cells, 32³ positions).
+    let coarse = pb::QueryBoxRequest { coarsen: 3, counts_only: true, ..qbox(vec![-10.0; 3], vec![15.0; 3]) };
     client.query_box(coarse).await.unwrap();
     expect_err(client.query_box(qbox(vec![0.0; 2], vec![1.0; 3])).await, Code::InvalidArgument, &["min"]);
     expect_err(client.query_box(qbox(vec![1.0; 3], vec![0.0; 3])).await, Code::InvalidArgument, &["min"]);
@@ -533,13 +534,11 @@ async fn bad_requests_are_refused_with_the_field_named_and_leave_the_map_unchang
     let export = pb::ExportRequest { map: "room".into(), min: vec![1.0; 3], ..Default::default() };
     expect_err(client.export(export).await, Code::InvalidArgument, &["ExportRequest.max"]);
 
-    // A malformed protobuf message: tonic answers INTERNAL (the gRPC rule for parse errors).
+    // A malformed protobuf message (a truncated varint).
     for method in ["/bgkmap.v1.MapService/InsertScan", "/bgkmap.v1.MapService/QueryPoints"] {
         let garbage = vec![0x0a, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0x01];
         let r = raw_unary(server.grpc_url(), method, garbage).await;
-        let s = r.expect_err("a malformed message must be refused");
-        assert_eq!(s.code(), Code::Internal, "{s:?}");
-        assert!(s.message().to_lowercase().contains("decode"), "{s:?}");
+        expect_err(r, Code::InvalidArgument, &["malformed protobuf"]);
     }
     // The server is still there, and the map did not move.
     assert_eq!(state_of(&mut client, "room").await, before);
