@@ -59,9 +59,10 @@ pub enum BoxError {
     Coarsen(u8),
 }
 
-/// Cells inside `q` (inclusive of boundary cells) that hold evidence, sorted by key; coarse
-/// cubes sum their children's evidence. `max_cells` bounds the number of lattice positions
-/// visited (at the query's coarsened resolution).
+/// Cells inside `q` (inclusive of boundary cells) that hold evidence, sorted by key (x, then y,
+/// then z); coarse cubes sum their children's evidence (clipped to the box). `max_cells` bounds
+/// the number of lattice positions of the answer (at the query's coarsened resolution); the
+/// work is bounded by the blocks that exist, never by the volume of the box.
 pub fn query_box(
     map: &EvidenceMap,
     q: &BoxQuery,
@@ -77,48 +78,68 @@ pub fn query_box(
         _ => return Err(BoxError::Malformed),
     };
     let s = q.coarsen;
-    let c = |v: i32| v >> s;
-    let span = |a: i32, b: i32| (i64::from(c(b)) - i64::from(c(a)) + 1) as u128;
+    let span = |a: i32, b: i32| (i64::from(b >> s) - i64::from(a >> s) + 1) as u128;
     let cells = span(lo.x, hi.x) * span(lo.y, hi.y) * span(lo.z, hi.z);
     if cells > u128::from(max_cells) {
         return Err(BoxError::TooLarge { cells, limit: max_cells });
     }
-    let mut out = Vec::new();
-    let size = 1i32 << s;
-    for z in c(lo.z)..=c(hi.z) {
-        for y in c(lo.y)..=c(hi.y) {
-            for x in c(lo.x)..=c(hi.x) {
-                let min_cell = CellKey::new(x << s, y << s, z << s);
-                let e = coarse_evidence(map, min_cell, size, lo, hi);
-                if e.is_empty() {
-                    continue;
-                }
-                let estimate = CellEstimate::from_evidence(e, map.params(), th);
-                if q.state.is_none_or(|st| st == estimate.state) {
-                    out.push(BoxCell { min_cell, size_cells: size, estimate });
-                }
+    let mut cubes: std::collections::BTreeMap<CellKey, Evidence> = std::collections::BTreeMap::new();
+    for key in blocks_in_box(map, lo, hi) {
+        let Some(block) = map.block(key) else { continue };
+        for i in 0..BLOCK_CELLS {
+            let (a, b) = (block.a[i], block.b[i]);
+            let cell = key.cell(i);
+            let inside = (lo.x..=hi.x).contains(&cell.x)
+                && (lo.y..=hi.y).contains(&cell.y)
+                && (lo.z..=hi.z).contains(&cell.z);
+            if (a != 0 || b != 0) && inside {
+                let e = cubes
+                    .entry(CellKey::new(cell.x >> s << s, cell.y >> s << s, cell.z >> s << s))
+                    .or_default();
+                e.a += a;
+                e.b += b;
             }
         }
     }
-    Ok(out)
+    let size = 1i32 << s;
+    Ok(cubes
+        .into_iter()
+        .map(|(min_cell, e)| BoxCell {
+            min_cell,
+            size_cells: size,
+            estimate: CellEstimate::from_evidence(e, map.params(), th),
+        })
+        .filter(|c| q.state.is_none_or(|st| st == c.estimate.state))
+        .collect())
 }
 
-fn coarse_evidence(map: &EvidenceMap, min: CellKey, size: i32, lo: CellKey, hi: CellKey) -> Evidence {
-    if size == 1 {
-        return map.evidence(min);
-    }
-    let mut e = Evidence::default();
-    let r = |m: i32, a: i32, b: i32| m.max(a)..=(m + size - 1).min(b);
-    for z in r(min.z, lo.z, hi.z) {
-        for y in r(min.y, lo.y, hi.y) {
-            for x in r(min.x, lo.x, hi.x) {
-                let ce = map.evidence(CellKey::new(x, y, z));
-                e.a += ce.a;
-                e.b += ce.b;
+/// The map's blocks that overlap cells `lo..=hi`: by walking the block range when it is small,
+/// else by filtering the map's blocks.
+fn blocks_in_box(map: &EvidenceMap, lo: CellKey, hi: CellKey) -> Vec<super::key::BlockKey> {
+    let (bl, bh) = (lo.block(), hi.block());
+    let n = |a: i32, b: i32| (i64::from(b) - i64::from(a) + 1) as u128;
+    let range = n(bl.x, bh.x) * n(bl.y, bh.y) * n(bl.z, bh.z);
+    if range <= map.block_count() as u128 {
+        let mut keys = Vec::new();
+        for z in bl.z..=bh.z {
+            for y in bl.y..=bh.y {
+                for x in bl.x..=bh.x {
+                    let k = super::key::BlockKey::new(x, y, z);
+                    if map.block(k).is_some() {
+                        keys.push(k);
+                    }
+                }
             }
         }
+        keys
+    } else {
+        map.blocks_unsorted()
+            .map(|(k, _)| *k)
+            .filter(|k| {
+                (bl.x..=bh.x).contains(&k.x) && (bl.y..=bh.y).contains(&k.y) && (bl.z..=bh.z).contains(&k.z)
+            })
+            .collect()
     }
-    e
 }
 
 /// Counts of cells with evidence inside a box, per state.
