@@ -158,10 +158,7 @@ pub async fn start(c: &ServerConfig) -> Result<Running> {
         async move {
             tonic::transport::Server::builder()
                 .add_routes(grpc_routes)
-                .serve_with_incoming_shutdown(
-                    tokio_stream::wrappers::TcpListenerStream::new(grpc_listener),
-                    stopped(rx),
-                )
+                .serve_with_incoming_shutdown(incoming_nodelay(grpc_listener), stopped(rx))
                 .await
                 .context("gRPC server")
         }
@@ -172,6 +169,20 @@ pub async fn start(c: &ServerConfig) -> Result<Running> {
         axum::serve(http_listener, app).with_graceful_shutdown(stopped(stop_rx)).await.context("HTTP server")
     });
     Ok(Running { grpc_addr, http_addr, service, tasks: vec![grpc, http], stop })
+}
+
+/// Accepted connections with Nagle's algorithm off: small answers (single-point queries) must
+/// not wait for the peer's delayed ACK.
+fn incoming_nodelay(
+    listener: tokio::net::TcpListener,
+) -> impl tokio_stream::Stream<Item = std::io::Result<tokio::net::TcpStream>> {
+    use tokio_stream::StreamExt as _;
+    tokio_stream::wrappers::TcpListenerStream::new(listener).map(|conn| {
+        if let Ok(c) = &conn {
+            let _ = c.set_nodelay(true);
+        }
+        conn
+    })
 }
 
 /// Resolves when SIGINT or SIGTERM arrives.
