@@ -83,8 +83,9 @@ pub async fn routes_with_health(
     Box<dyn std::error::Error + Send + Sync>,
 > {
     let limit = config.max_message_bytes;
+    super::codec::set_max_message_bytes(limit);
     let map = MapServiceServer::new(MapGrpc::new(service, config))
-        .max_decoding_message_size(limit)
+        .max_decoding_message_size(limit.saturating_mul(4))
         .max_encoding_message_size(limit);
     let (reporter, health) = tonic_health::server::health_reporter();
     reporter.set_serving::<MapServiceServer<MapGrpc>>().await;

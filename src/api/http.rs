@@ -357,10 +357,10 @@ async fn box_query(State(st): State<AppState>, Path(map): Path<String>, body: By
     let th = ThresholdsJson::resolve(&q.thresholds, snap.map.params().thresholds)?;
     let state = q.state.as_deref().map(parse_state).transpose()?;
     let bq = BoxQuery { min_world: q.min, max_world: q.max, state, coarsen: q.coarsen };
-    let cells = query_box(&snap.map, &bq, &th, st.config.max_box_cells).map_err(|e| match e {
-        BoxError::TooLarge { .. } => ApiError(StatusCode::PAYLOAD_TOO_LARGE, e.to_string()),
-        other => ApiError::bad(other.to_string()),
-    })?;
+    // A box over the limit is a bad request (400, as gRPC's INVALID_ARGUMENT); the message
+    // gives the limit.
+    let cells = query_box(&snap.map, &bq, &th, st.config.max_box_cells)
+        .map_err(|e: BoxError| ApiError::bad(e.to_string()))?;
     let counts = crate::core::query::count_box(&cells);
     let mut out = json!({"counts": {"free": counts[0], "occupied": counts[1], "unknown": counts[2]},
                          "version": snap.version});
@@ -410,8 +410,8 @@ async fn rays_query(State(st): State<AppState>, Path(map): Path<String>, body: B
         let hit = cast_ray(&snap.map, r.origin, r.direction, r.max_range, stop, &th)
             .map_err(|e: RayError| ApiError::bad(format!("rays[{i}]: {e}")))?;
         results.push(match hit {
-            RayHit::Clear => json!({"blocked": false}),
-            RayHit::Blocked { cell, distance_m, estimate } => json!({"blocked": true,
+            RayHit::Clear => json!({"blocked": false, "verdict": "clear"}),
+            RayHit::Blocked { cell, distance_m, estimate } => json!({"blocked": true, "verdict": "blocked",
                 "cell": [cell.x, cell.y, cell.z], "distance": distance_m,
                 "state": state_str(estimate.state), "probability": estimate.probability}),
         });
@@ -446,6 +446,14 @@ async fn metrics(State(st): State<AppState>) -> Response {
                 );
             }
         }
+    }
+    let _ = writeln!(out, "# TYPE bgkmap_integration_seconds_total counter");
+    for i in st.service.list_maps() {
+        let _ = writeln!(
+            out,
+            "bgkmap_integration_seconds_total{{map=\"{}\"}} {}",
+            i.name, i.integration_seconds_total
+        );
     }
     let _ = writeln!(out, "# TYPE bgkmap_queue_depth gauge");
     let _ = writeln!(out, "# TYPE bgkmap_map_version gauge");

@@ -105,6 +105,8 @@ pub struct MapInfo {
     pub blocks: usize,
     pub cells_with_evidence: usize,
     pub queued: usize,
+    /// Time the writer spent integrating scans (training data, evidence, map update), seconds.
+    pub integration_seconds_total: f64,
     pub sources: BTreeMap<String, SourceStats>,
 }
 
@@ -112,6 +114,7 @@ struct MapHandle {
     params: MapParams,
     queue: Mutex<Option<SyncSender<Job>>>,
     queued: Arc<std::sync::atomic::AtomicUsize>,
+    integration_micros: Arc<std::sync::atomic::AtomicU64>,
     snapshot: Arc<RwLock<Arc<Snapshot>>>,
     sources: Arc<Mutex<BTreeMap<String, SourceStats>>>,
     writer: Mutex<Option<std::thread::JoinHandle<()>>>,
@@ -179,8 +182,14 @@ impl MapService {
         let params = *map.params();
         let sources = Arc::new(Mutex::new(BTreeMap::new()));
         let queued = Arc::new(std::sync::atomic::AtomicUsize::new(0));
-        let writer =
-            Writer::new(file, map, scans, snapshot.clone(), sources.clone(), queued.clone(), &self.config);
+        let integration_micros = Arc::new(std::sync::atomic::AtomicU64::new(0));
+        let shared = writer::Shared {
+            snapshot: snapshot.clone(),
+            sources: sources.clone(),
+            queued: queued.clone(),
+            integration_micros: integration_micros.clone(),
+        };
+        let writer = Writer::new(file, map, scans, shared, &self.config);
         let join = std::thread::Builder::new()
             .name(format!("bgkmap-writer-{name}"))
             .spawn(move || writer.run(rx))
@@ -189,6 +198,7 @@ impl MapService {
             params,
             queue: Mutex::new(Some(tx)),
             queued,
+            integration_micros,
             snapshot,
             sources,
             writer: Mutex::new(join),
@@ -237,6 +247,8 @@ impl MapService {
             blocks: snap.map.block_count(),
             cells_with_evidence: snap.map.cells_with_evidence(),
             queued: h.queued.load(std::sync::atomic::Ordering::Relaxed),
+            integration_seconds_total: h.integration_micros.load(std::sync::atomic::Ordering::Relaxed) as f64
+                / 1e6,
             sources: lock(&h.sources).clone(),
         })
     }

@@ -5,13 +5,21 @@ use super::{Ack, Done, ServiceConfig, ServiceError, Snapshot, SourceStats};
 use crate::core::{EvidenceMap, Integrator};
 use crate::store::MapFile;
 use std::collections::{BTreeMap, HashSet};
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::mpsc::Receiver;
 use std::sync::{Arc, Mutex, PoisonError, RwLock};
 
 pub(super) struct Job {
     pub scan: PreparedScan,
     pub done: Done,
+}
+
+/// State the writer shares with readers of the service.
+pub(super) struct Shared {
+    pub snapshot: Arc<RwLock<Arc<Snapshot>>>,
+    pub sources: Arc<Mutex<BTreeMap<String, SourceStats>>>,
+    pub queued: Arc<AtomicUsize>,
+    pub integration_micros: Arc<AtomicU64>,
 }
 
 pub(super) struct Writer {
@@ -21,9 +29,7 @@ pub(super) struct Writer {
     applied: HashSet<(String, u64)>,
     version: u64,
     threads: usize,
-    snapshot: Arc<RwLock<Arc<Snapshot>>>,
-    sources: Arc<Mutex<BTreeMap<String, SourceStats>>>,
-    queued: Arc<AtomicUsize>,
+    shared: Shared,
 }
 
 impl Writer {
@@ -31,9 +37,7 @@ impl Writer {
         file: MapFile,
         map: EvidenceMap,
         scans: Vec<(String, u64)>,
-        snapshot: Arc<RwLock<Arc<Snapshot>>>,
-        sources: Arc<Mutex<BTreeMap<String, SourceStats>>>,
-        queued: Arc<AtomicUsize>,
+        shared: Shared,
         config: &ServiceConfig,
     ) -> Self {
         Self {
@@ -43,9 +47,7 @@ impl Writer {
             file,
             map,
             threads: config.threads_per_scan.max(1),
-            snapshot,
-            sources,
-            queued,
+            shared,
         }
     }
 
@@ -53,7 +55,7 @@ impl Writer {
     pub fn run(mut self, rx: Receiver<Job>) {
         while let Ok(job) = rx.recv() {
             let result = self.apply(&job.scan);
-            self.queued.fetch_sub(1, Ordering::Relaxed);
+            self.shared.queued.fetch_sub(1, Ordering::Relaxed);
             self.count(&job.scan, &result);
             (job.done)(result);
         }
@@ -65,6 +67,7 @@ impl Writer {
         if self.applied.contains(&id) {
             return Ok(ack(false, self.version));
         }
+        let t0 = std::time::Instant::now();
         let delta = self.integrator.scan_delta_with_range(
             &scan.points_world,
             scan.origin_world,
@@ -72,6 +75,7 @@ impl Writer {
             scan.max_range_m,
         );
         let updated = self.map.blocks_after(&delta, 1);
+        self.shared.integration_micros.fetch_add(t0.elapsed().as_micros() as u64, Ordering::Relaxed);
         self.integrator.recycle(delta);
         // Persist first: the map only moves on once the file holds the scan.
         let rows: Vec<_> = updated.iter().map(|(k, b)| (*k, b.as_deref())).collect();
@@ -80,12 +84,12 @@ impl Writer {
         self.applied.insert(id);
         self.version += 1;
         let snap = Arc::new(Snapshot { version: self.version, map: self.map.clone() });
-        *self.snapshot.write().unwrap_or_else(PoisonError::into_inner) = snap;
+        *self.shared.snapshot.write().unwrap_or_else(PoisonError::into_inner) = snap;
         Ok(ack(true, self.version))
     }
 
     fn count(&self, scan: &PreparedScan, result: &Result<Ack, ServiceError>) {
-        let mut sources = self.sources.lock().unwrap_or_else(PoisonError::into_inner);
+        let mut sources = self.shared.sources.lock().unwrap_or_else(PoisonError::into_inner);
         let s = sources.entry(scan.source.clone()).or_default();
         s.received += 1;
         match result {
