@@ -11,9 +11,7 @@ use bgkmap::core::query::query_points;
 use bgkmap::core::{EvidenceMap, Integrator, MapParams};
 use bgkmap::sim::{Lidar, simulate};
 
-fn packed(points: &[[f32; 3]]) -> Vec<u8> {
-    points.iter().flat_map(|p| p.iter().flat_map(|v| v.to_le_bytes())).collect()
-}
+use bgkmap::api::pack_xyz as packed;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn concurrent_queries_see_whole_scans_only() {
@@ -63,17 +61,7 @@ async fn concurrent_queries_see_whole_scans_only() {
         .enumerate()
         .map(|(i, s)| pb::InsertScanRequest {
             map: "m".into(),
-            scan: Some(pb::Scan {
-                source: "robot".into(),
-                seq: i as u64 + 1,
-                world_from_sensor: Some(pb::Pose {
-                    translation: s.origin.to_vec(),
-                    rotation: vec![1.0, 0.0, 0.0, 0.0],
-                }),
-                frame: pb::Frame::World as i32,
-                xyz_f32: packed(&s.points_world),
-                max_range: None,
-            }),
+            scan: Some(pb::Scan::world("robot", i as u64 + 1, s.origin, &s.points_world)),
         })
         .collect();
     let summary = client.insert_scans(tokio_stream::iter(requests)).await.unwrap().into_inner();

@@ -17,3 +17,26 @@ pub mod codec;
 pub mod grpc;
 pub mod http;
 pub mod status;
+
+impl pb::Scan {
+    /// A world-frame scan seen from `origin_world` (identity rotation), points packed as
+    /// little-endian f32 — what the CLI's clients send.
+    pub fn world(source: &str, seq: u64, origin_world: [f64; 3], points_world: &[[f32; 3]]) -> Self {
+        Self {
+            source: source.into(),
+            seq,
+            world_from_sensor: Some(pb::Pose {
+                translation: origin_world.to_vec(),
+                rotation: vec![1.0, 0.0, 0.0, 0.0],
+            }),
+            frame: pb::Frame::World as i32,
+            xyz_f32: pack_xyz(points_world),
+            max_range: None,
+        }
+    }
+}
+
+/// Points as little-endian f32 triplets (the wire layout of `xyz_f32`).
+pub fn pack_xyz(points: &[[f32; 3]]) -> Vec<u8> {
+    points.iter().flat_map(|p| p.iter().flat_map(|v| v.to_le_bytes())).collect()
+}

@@ -181,17 +181,7 @@ async fn connect(addr: SocketAddr) -> Result<Client> {
 fn scan_request(source: &str, seq: u64, s: &SimScan) -> pb::InsertScanRequest {
     pb::InsertScanRequest {
         map: MAP.into(),
-        scan: Some(pb::Scan {
-            source: source.into(),
-            seq,
-            world_from_sensor: Some(pb::Pose {
-                translation: s.origin.to_vec(),
-                rotation: vec![1.0, 0.0, 0.0, 0.0],
-            }),
-            frame: pb::Frame::World as i32,
-            xyz_f32: s.points_world.iter().flat_map(|p| p.iter().flat_map(|v| v.to_le_bytes())).collect(),
-            max_range: None,
-        }),
+        scan: Some(pb::Scan::world(source, seq, s.origin, &s.points_world)),
     }
 }
 

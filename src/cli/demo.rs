@@ -91,17 +91,7 @@ async fn stream_scans(grpc: std::net::SocketAddr, scans: &[SimScan]) -> Result<(
         .enumerate()
         .map(|(i, s)| pb::InsertScanRequest {
             map: "demo".into(),
-            scan: Some(pb::Scan {
-                source: "sim-robot".into(),
-                seq: i as u64 + 1,
-                world_from_sensor: Some(pb::Pose {
-                    translation: s.origin.to_vec(),
-                    rotation: vec![1.0, 0.0, 0.0, 0.0],
-                }),
-                frame: pb::Frame::World as i32,
-                xyz_f32: s.points_world.iter().flat_map(|p| p.iter().flat_map(|v| v.to_le_bytes())).collect(),
-                max_range: None,
-            }),
+            scan: Some(pb::Scan::world("sim-robot", i as u64 + 1, s.origin, &s.points_world)),
         })
         .collect();
     let summary =

@@ -44,24 +44,9 @@ pub fn run(a: IngestArgs) -> Result<()> {
         let (mut applied, mut duplicates) = (0, 0);
         for (i, path) in a.scans.iter().enumerate() {
             let scan = load_scan(path, &a.scan)?;
-            let request = pb::InsertScanRequest {
-                map: a.map.clone(),
-                scan: Some(pb::Scan {
-                    source: a.source.clone(),
-                    seq: a.first_seq + i as u64,
-                    world_from_sensor: Some(pb::Pose {
-                        translation: scan.origin_world.to_vec(),
-                        rotation: vec![1.0, 0.0, 0.0, 0.0],
-                    }),
-                    frame: pb::Frame::World as i32,
-                    xyz_f32: scan
-                        .points_world
-                        .iter()
-                        .flat_map(|p| p.iter().flat_map(|v| v.to_le_bytes()))
-                        .collect(),
-                    max_range: None,
-                }),
-            };
+            let seq = a.first_seq + i as u64;
+            let scan = pb::Scan::world(&a.source, seq, scan.origin_world, &scan.points_world);
+            let request = pb::InsertScanRequest { map: a.map.clone(), scan: Some(scan) };
             let ack = client
                 .insert_scan(request)
                 .await
