@@ -430,8 +430,9 @@ impl AppState {
 async fn metrics(State(st): State<AppState>) -> Response {
     use std::fmt::Write as _;
     let mut out = String::new();
+    let maps = st.service.list_maps();
     let _ = writeln!(out, "# TYPE bgkmap_scans_total counter");
-    for i in st.service.list_maps() {
+    for i in &maps {
         for (src, s) in &i.sources {
             for (what, v) in [
                 ("received", s.received),
@@ -448,7 +449,7 @@ async fn metrics(State(st): State<AppState>) -> Response {
         }
     }
     let _ = writeln!(out, "# TYPE bgkmap_integration_seconds_total counter");
-    for i in st.service.list_maps() {
+    for i in &maps {
         let _ = writeln!(
             out,
             "bgkmap_integration_seconds_total{{map=\"{}\"}} {}",
@@ -457,7 +458,7 @@ async fn metrics(State(st): State<AppState>) -> Response {
     }
     let _ = writeln!(out, "# TYPE bgkmap_queue_depth gauge");
     let _ = writeln!(out, "# TYPE bgkmap_map_version gauge");
-    for i in st.service.list_maps() {
+    for i in &maps {
         let _ = writeln!(out, "bgkmap_queue_depth{{map=\"{}\"}} {}", i.name, i.queued);
         let _ = writeln!(out, "bgkmap_map_version{{map=\"{}\"}} {}", i.name, i.version);
     }

@@ -63,6 +63,17 @@ impl MapFile {
         Ok(OpenedMap { file: Self { conn, path: path.to_path_buf() }, map, scans })
     }
 
+    /// Wraps a connection to a file whose schema is already written (rollback journal mode).
+    pub(super) fn from_conn(conn: Connection, path: &Path) -> Self {
+        Self { conn, path: path.to_path_buf() }
+    }
+
+    /// Closes the file, reporting a failure to flush it.
+    pub(super) fn close(self) -> Result<(), StoreError> {
+        let path = self.path;
+        self.conn.close().map_err(|(_, err)| sql(&path)(err))
+    }
+
     pub fn path(&self) -> &Path {
         &self.path
     }

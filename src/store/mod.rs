@@ -110,24 +110,13 @@ pub fn temp_sibling(path: &Path) -> PathBuf {
 
 fn write_new(path: &Path, map: &EvidenceMap) -> Result<(), StoreError> {
     let _ = std::fs::remove_file(path);
-    let e = sql(path);
-    let mut conn = Connection::open(path).map_err(&e)?;
+    let mut conn = Connection::open(path).map_err(sql(path))?;
     create_schema(&mut conn, path, map.params())?;
-    let tx = conn.transaction().map_err(&e)?;
-    {
-        let mut ins = tx
-            .prepare("INSERT INTO blocks (bx, by, bz, data, crc32) VALUES (?1, ?2, ?3, ?4, ?5)")
-            .map_err(&e)?;
-        let mut buf = Vec::new();
-        for key in map.block_keys_sorted() {
-            let Some(block) = map.block(key) else { continue };
-            buf.clear();
-            encode_block(block, &mut buf);
-            ins.execute(params![key.x, key.y, key.z, &buf, crc32fast::hash(&buf)]).map_err(&e)?;
-        }
-    }
-    tx.commit().map_err(&e)?;
-    conn.close().map_err(|(_, err)| e(err))
+    let mut file = MapFile::from_conn(conn, path);
+    let keys = map.block_keys_sorted();
+    let rows: Vec<_> = keys.iter().map(|k| (*k, map.block(*k))).collect();
+    file.commit(&rows, &[])?;
+    file.close()
 }
 
 /// Creates the tables and writes the format header and parameters of a new, empty map file.
