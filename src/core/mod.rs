@@ -12,7 +12,9 @@ pub mod params;
 pub mod pose;
 pub mod query;
 pub mod scatter;
+pub mod simd;
 pub mod training;
+pub mod window;
 
 pub use key::{BlockKey, CellKey};
 pub use map::{CellEstimate, CellState, EvidenceMap, Integrator};
