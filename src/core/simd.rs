@@ -79,3 +79,39 @@ mod x86 {
 
     const COORD_SHIFT_I32: i32 = COORD_SHIFT as i32;
 }
+
+#[cfg(all(test, target_arch = "x86_64"))]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    /// Whatever path this machine takes, it gives the portable path's bits (windows of points at
+    /// random offsets, including the cut-off and offsets on cell edges).
+    #[test]
+    fn simd_lanes_equal_the_portable_lanes() {
+        let table = KernelTable::new();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let scale = (TABLE_INTERVALS as f64) * f64::from(1u32 << COORD_SHIFT) / 4.0;
+        for i in 0..20_000 {
+            let f: [f64; 3] = std::array::from_fn(|_| match i % 4 {
+                0 => -0.5,
+                1 => 0.0,
+                _ => rng.random_range(-0.5..0.5),
+            });
+            let axis: [[f64; 4]; 3] = std::array::from_fn(|a| {
+                let start = if f[a] < 0.0 { -2.0 } else { -1.0 };
+                std::array::from_fn(|k| {
+                    let d = start + k as f64 - f[a];
+                    d * d
+                })
+            });
+            let mut fast = [0i32; 64];
+            let mut slow = [0i32; 64];
+            window_values_w4(&axis, scale, &table, &mut fast);
+            super::super::window::window_values_portable::<4, 64>(&axis, scale, &table, &mut slow);
+            if std::arch::is_x86_feature_detected!("avx2") {
+                assert_eq!(fast, slow, "f = {f:?}");
+            }
+        }
+    }
+}

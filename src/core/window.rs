@@ -146,6 +146,17 @@ fn window_values<const W: usize, const W3: usize>(
             return out;
         }
     }
+    window_values_portable::<W, W3>(axis, scale, table, &mut out);
+    out
+}
+
+/// [`window_values`] without the SIMD lookups (the reference for the AVX2 path).
+pub(crate) fn window_values_portable<const W: usize, const W3: usize>(
+    axis: &[[f64; W]; 3],
+    scale: f64,
+    table: &KernelTable,
+    out: &mut [i32; W3],
+) {
     let mut d2 = [0f64; W3];
     for z in 0..W {
         for y in 0..W {
@@ -158,5 +169,4 @@ fn window_values<const W: usize, const W3: usize>(
     for (o, &d) in out.iter_mut().zip(&d2) {
         *o = table.quantized_lane(KernelTable::lane_coordinate(d, scale));
     }
-    out
 }
