@@ -133,6 +133,7 @@ pub async fn start(c: &ServerConfig) -> Result<Running> {
         queue_capacity: c.queue_capacity,
         threads_per_scan: c.threads_per_scan,
         limits: ScanLimits { max_points: c.max_points, ..ScanLimits::default() },
+        ..ServiceConfig::default()
     };
     let dir = c.data_dir.clone();
     let service = Arc::new(
