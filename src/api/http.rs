@@ -506,9 +506,16 @@ async fn metrics(State(st): State<AppState>) -> Response {
     }
     let _ = writeln!(out, "# TYPE bgkmap_queue_depth gauge");
     let _ = writeln!(out, "# TYPE bgkmap_map_version gauge");
+    let _ = writeln!(out, "# TYPE bgkmap_journal_bytes gauge");
+    let _ = writeln!(out, "# TYPE bgkmap_corrupt_blocks gauge");
+    let _ = writeln!(out, "# TYPE bgkmap_map_read_only gauge");
     for i in &maps {
         let _ = writeln!(out, "bgkmap_queue_depth{{map=\"{}\"}} {}", i.name, i.queued);
         let _ = writeln!(out, "bgkmap_map_version{{map=\"{}\"}} {}", i.name, i.version);
+        let _ = writeln!(out, "bgkmap_journal_bytes{{map=\"{}\"}} {}", i.name, i.journal_bytes);
+        let _ = writeln!(out, "bgkmap_corrupt_blocks{{map=\"{}\"}} {}", i.name, i.corrupt_blocks);
+        let _ =
+            writeln!(out, "bgkmap_map_read_only{{map=\"{}\"}} {}", i.name, u8::from(i.read_only.is_some()));
     }
     let _ = writeln!(out, "# TYPE bgkmap_http_queries_total counter");
     let _ = writeln!(out, "# TYPE bgkmap_http_query_seconds_total counter");

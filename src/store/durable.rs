@@ -28,6 +28,49 @@ pub enum Retention {
     MaxBytes(u64),
 }
 
+impl std::str::FromStr for Retention {
+    type Err = String;
+
+    /// `all`, `none`, an age (`7d`, `12h`, `30m`, `90s`) or a size (`500MB`, `2GiB`, `1000000B`).
+    fn from_str(s: &str) -> Result<Self, String> {
+        let t = s.trim();
+        match t.to_ascii_lowercase().as_str() {
+            "all" => return Ok(Self::All),
+            "none" => return Ok(Self::None),
+            _ => {}
+        }
+        let split = t.find(|c: char| !(c.is_ascii_digit() || c == '.')).unwrap_or(t.len());
+        let (num, unit) = t.split_at(split);
+        let n: f64 = num.parse().map_err(|_| format!("journal retention {s:?}: expected all, none, an age (7d, 12h, 30m, 90s) or a size (500MB, 2GiB)"))?;
+        let scale = |k: f64| {
+            let v = n * k;
+            if v.is_finite() && v >= 0.0 && v < 1.8e19 {
+                Ok(v as u64)
+            } else {
+                Err(format!("journal retention {s:?} is out of range"))
+            }
+        };
+        match unit.trim() {
+            "d" => scale(86_400.0).map(Self::MaxAgeSeconds),
+            "h" => scale(3_600.0).map(Self::MaxAgeSeconds),
+            "m" => scale(60.0).map(Self::MaxAgeSeconds),
+            "s" => scale(1.0).map(Self::MaxAgeSeconds),
+            "B" => scale(1.0).map(Self::MaxBytes),
+            "KB" => scale(1e3).map(Self::MaxBytes),
+            "MB" => scale(1e6).map(Self::MaxBytes),
+            "GB" => scale(1e9).map(Self::MaxBytes),
+            "TB" => scale(1e12).map(Self::MaxBytes),
+            "KiB" => scale(1024.0).map(Self::MaxBytes),
+            "MiB" => scale(1024.0 * 1024.0).map(Self::MaxBytes),
+            "GiB" => scale(1024.0 * 1024.0 * 1024.0).map(Self::MaxBytes),
+            "TiB" => scale(1024.0f64.powi(4)).map(Self::MaxBytes),
+            other => Err(format!(
+                "journal retention {s:?}: unknown unit {other:?} (d, h, m, s, B, KB, MB, GB, TB, KiB, MiB, GiB, TiB)"
+            )),
+        }
+    }
+}
+
 /// A journaled scan waiting to be integrated.
 #[derive(Debug, Clone)]
 pub struct Pending {

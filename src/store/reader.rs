@@ -53,6 +53,15 @@ impl MapReader {
         self.conn.execute_batch("COMMIT").map_err(sql(&self.path))
     }
 
+    /// Writes a compacted, consistent copy of the file to `dest` (which must not exist).
+    pub fn copy_to(&self, dest: &Path) -> Result<(), StoreError> {
+        let dest_str = dest.to_str().ok_or_else(|| StoreError::Io {
+            path: dest.to_path_buf(),
+            error: std::io::Error::other("the path is not valid UTF-8"),
+        })?;
+        self.conn.execute("VACUUM INTO ?1", [dest_str]).map(|_| ()).map_err(sql(dest))
+    }
+
     pub fn version(&self) -> Result<u64, StoreError> {
         read_version(&self.conn, &self.path)
     }
