@@ -204,9 +204,14 @@ async fn a_merge_that_cannot_be_exact_is_refused_and_changes_nothing() {
             .await;
     }
     // Integration (and pruning) is done once a read-your-writes scan comes back.
-    let req =
-        pb::InsertScanRequest { map: "p".into(), scan: Some(msg("own", 3, &scans[2])), wait_applied: true };
-    c.insert_scan(req).await.unwrap();
+    for (map, seq) in [("p", 3), ("q", 4)] {
+        let req = pb::InsertScanRequest {
+            map: map.into(),
+            scan: Some(msg("own", seq, &scans[2])),
+            wait_applied: true,
+        };
+        c.insert_scan(req).await.unwrap();
+    }
     let before = version(&mut c, "p").await;
     let req =
         pb::MergeMapRequest { map: "p".into(), from: Some(pb::merge_map_request::From::FromMap("q".into())) };
