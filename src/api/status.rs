@@ -7,7 +7,7 @@
 //! | bad request | `INVALID_ARGUMENT` | 400 |
 //! | queue full | `RESOURCE_EXHAUSTED` (+ `retry-after-ms`) | 429 (+ `Retry-After`) |
 //! | map read-only after a failed write, or damaged | `UNAVAILABLE` | 503 |
-//! | cannot be done exactly (raw scans pruned, conflicting scans) | `FAILED_PRECONDITION` | 409 |
+//! | cannot be done exactly (raw scans pruned, conflicting scans) | `FAILED_PRECONDITION` | 412 |
 //! | corrupt block or journal record | `DATA_LOSS` | 500 |
 //! | shutting down | `UNAVAILABLE` | 503 |
 //! | other storage failure | `INTERNAL` | 500 |
@@ -40,7 +40,8 @@ pub fn to_grpc(e: &ServiceError) -> tonic::Status {
 pub fn http_code(e: &ServiceError) -> u16 {
     match e {
         ServiceError::NotFound(_) | ServiceError::ScansNotFound(_) => 404,
-        ServiceError::AlreadyExists(_) | ServiceError::Precondition(_) => 409,
+        ServiceError::AlreadyExists(_) => 409,
+        ServiceError::Precondition(_) => 412,
         ServiceError::InvalidArgument { .. } => 400,
         ServiceError::Busy { .. } => 429,
         ServiceError::ReadOnly { .. } | ServiceError::ShuttingDown => 503,

@@ -167,3 +167,41 @@ fn a_full_file_fails_the_write_and_changes_nothing() {
     file.set_max_pages(1 << 30).unwrap();
     assert!(file.journal(&big).unwrap().iter().all(Option::is_some), "nothing of the failed batch was kept");
 }
+
+#[test]
+fn retention_keeps_what_the_policy_says_and_operations_name_what_is_gone() {
+    let dir = tempfile::tempdir().unwrap();
+    let scans: Vec<_> = (0..4).map(|k| ("r", k as u64 + 1, scan(k))).collect();
+    let mut dm = durable(dir.path(), "m.bgkmap", &scans);
+    let per_scan = dm.journal().get("r", 1).unwrap().record_bytes;
+    assert_eq!(
+        dm.stored_bytes(),
+        scans.iter().map(|(s, q, _)| dm.journal().get(s, *q).unwrap().record_bytes).sum::<u64>()
+    );
+    // A size limit prunes the oldest first.
+    dm.set_retention("1GiB".parse().unwrap());
+    assert_eq!(dm.prune(now_nanos()).unwrap(), 0);
+    dm.set_retention(Retention::MaxBytes(2 * per_scan + per_scan / 2));
+    assert_eq!(dm.prune(now_nanos()).unwrap(), 2);
+    let status = |dm: &DurableMap, q| dm.journal().get("r", q).unwrap().status;
+    assert_eq!(
+        [1, 2, 3, 4].map(|q| status(&dm, q)),
+        [ScanStatus::Pruned, ScanStatus::Pruned, ScanStatus::Applied, ScanStatus::Applied]
+    );
+    // An age limit: everything was received just now, so only a zero age prunes.
+    dm.set_retention("7d".parse().unwrap());
+    assert_eq!(dm.prune(now_nanos()).unwrap(), 0);
+    dm.set_retention(Retention::MaxAgeSeconds(0));
+    assert_eq!(dm.prune(now_nanos() + 1).unwrap(), 2);
+    // The evidence is untouched; operations that need raw scans say they are gone.
+    assert_eq!(cells(dm.map()), cells(&clean(&[scan(0), scan(1), scan(2), scan(3)])));
+    let err = dm.repose(&[(("r".into(), 3), Pose::at([0.0, 0.0, 0.5]))]).unwrap_err();
+    assert!(matches!(&err, OpError::Refused(m) if m.contains("(r, 3)") && m.contains("pruned")), "{err}");
+    assert!(check::check_map(dm.path()).unwrap().is_ok());
+    for bad in ["", "7 weeks", "-1d", "xMB", "1e400GB"] {
+        assert!(bad.parse::<Retention>().is_err(), "{bad:?}");
+    }
+    assert_eq!("none".parse::<Retention>(), Ok(Retention::None));
+    assert_eq!("12h".parse::<Retention>(), Ok(Retention::MaxAgeSeconds(43_200)));
+    assert_eq!("2MiB".parse::<Retention>(), Ok(Retention::MaxBytes(2 << 20)));
+}
