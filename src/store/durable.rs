@@ -44,7 +44,7 @@ impl std::str::FromStr for Retention {
         let n: f64 = num.parse().map_err(|_| format!("journal retention {s:?}: expected all, none, an age (7d, 12h, 30m, 90s) or a size (500MB, 2GiB)"))?;
         let scale = |k: f64| {
             let v = n * k;
-            if v.is_finite() && v >= 0.0 && v < 1.8e19 {
+            if (0.0..1.8e19).contains(&v) {
                 Ok(v as u64)
             } else {
                 Err(format!("journal retention {s:?} is out of range"))
