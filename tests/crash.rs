@@ -110,7 +110,7 @@ async fn sigkill_at_random_moments_loses_nothing_acknowledged_and_counts_each_sc
     let (data, files) = scans(dir);
     let data = Arc::new(data);
     let unacked = Arc::new(Mutex::new(vec![(0..SCANS_PER_SOURCE).collect::<VecDeque<_>>(); SOURCES]));
-    let mut rng = ChaCha8Rng::seed_from_u64(0x5eed_4);
+    let mut rng = ChaCha8Rng::seed_from_u64(0x0005_eed4);
     let mut kills_with_progress = 0;
     for cycle in 0..=KILLS {
         let server = start_serve(&data_dir, &[]);
