@@ -5,6 +5,9 @@
 mod args;
 mod bench;
 #[cfg(feature = "server")]
+mod bench_durable;
+mod bench_maps;
+#[cfg(feature = "server")]
 mod bench_server;
 mod build;
 #[cfg(feature = "server")]
