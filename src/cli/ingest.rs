@@ -60,7 +60,7 @@ pub fn run(a: IngestArgs) -> Result<()> {
             bar.inc(1);
         }
         bar.finish_and_clear();
-        eprintln!("{}: {applied} scans applied, {duplicates} already in the map", a.map);
+        eprintln!("{}: {applied} scans acknowledged (durable), {duplicates} already in the map", a.map);
         Ok(())
     })
 }

@@ -49,7 +49,10 @@ impl Writer {
         let Recovered { mut map, pending, lost } = recovered;
         let faults = Faults::new(config.write_retry);
         let mut left = Vec::new();
-        if !pending.is_empty()
+        if !map.corrupt().is_empty() {
+            // Integrating next to a corrupt block would overwrite it: keep the scans journaled.
+            left = pending;
+        } else if !pending.is_empty()
             && let Err(e) = map.apply(&pending)
         {
             // Cannot write now (e.g. a full disk): serve what is integrated, retry later.
@@ -145,7 +148,8 @@ impl Writer {
 
     /// Integrates the pending scans (unless backing off after a failed write).
     fn flush(&mut self) {
-        if self.pending.is_empty() || self.shared.faults.apply_backing_off() {
+        if self.pending.is_empty() || self.shared.faults.apply_backing_off() || !self.map.corrupt().is_empty()
+        {
             return;
         }
         let t0 = Instant::now();

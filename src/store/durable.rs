@@ -213,6 +213,10 @@ impl DurableMap {
     /// then into memory. On error nothing changed (the scans stay journaled).
     pub fn apply(&mut self, scans: &[Pending]) -> Result<Change, StoreError> {
         let path = self.file.path().to_path_buf();
+        if let Some(c) = self.corrupt.first() {
+            // The block's true content is unknown: adding to it would overwrite it.
+            return Err(super::reader::corrupt_block(&path, c.key, c.reason.clone()));
+        }
         let mut edit = self.map.edit();
         for p in scans {
             let delta = p
