@@ -15,7 +15,9 @@ pub mod pb {
 
 pub mod codec;
 pub mod grpc;
+mod grpc_ops;
 pub mod http;
+mod http_ops;
 pub mod status;
 
 impl pb::Scan {
@@ -32,6 +34,7 @@ impl pb::Scan {
             frame: pb::Frame::World as i32,
             xyz_f32: pack_xyz(points_world),
             max_range: None,
+            stamp_nanos: None,
         }
     }
 }

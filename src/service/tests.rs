@@ -1,4 +1,5 @@
 use super::*;
+use crate::core::EvidenceMap;
 use crate::core::{Integrator, PointFrame, Pose};
 use crate::sim::{Lidar, simulate};
 
@@ -14,6 +15,7 @@ fn sim_scans(n: usize) -> Vec<ScanInput> {
             frame: PointFrame::World,
             points: s.points_world,
             max_range_m: None,
+            stamp_nanos: None,
         })
         .collect()
 }
@@ -75,7 +77,7 @@ fn duplicates_change_nothing() {
     svc.insert_scan_blocking("m", scans[0].clone()).unwrap();
     let before = svc.snapshot("m").unwrap();
     let ack = svc.insert_scan_blocking("m", scans[0].clone()).unwrap();
-    assert_eq!(ack, Ack { applied: false, version: 1, dropped_points: 0 });
+    assert_eq!(ack, Ack { applied: false, integrated: false, version: 1, dropped_points: 0 });
     let after = svc.snapshot("m").unwrap();
     assert!(Arc::ptr_eq(&before, &after));
     // Same seq from another source is a different scan.
@@ -145,6 +147,7 @@ fn sensor_frame_scans_equal_their_world_frame_twins() {
             .map(|i| [4.0, -1.0 + (i % 20) as f32 * 0.125, -0.5 + (i / 20) as f32 * 0.125])
             .collect(),
         max_range_m: None,
+        stamp_nanos: None,
     };
     let sensor = ScanInput {
         frame: PointFrame::Sensor,
