@@ -14,7 +14,7 @@
 //! take the current snapshot (an `Arc`): they never wait for a writer nor see a half-applied
 //! scan. A full queue (or too many journaled scans waiting for integration) is an answer
 //! ([`ServiceError::Busy`]), not a wait. A failed write makes the map read-only until writing
-//! works again ([`health`]). On open, journaled scans not yet integrated are replayed before the
+//! works again (see the `health` module). On open, journaled scans not yet integrated are replayed before the
 //! map serves, so the first snapshot holds every acknowledged scan.
 //!
 //! The service is synchronous (std threads and channels); transports adapt the completion
