@@ -152,9 +152,20 @@ pub(super) struct Shared {
     pub backlog: AtomicUsize,
     pub integration_micros: AtomicU64,
     pub session: Mutex<BTreeMap<String, SessionCounts>>,
-    /// What the journal holds (published by the writer).
-    pub content: RwLock<Arc<(BTreeMap<String, SourceContent>, u64)>>,
+    /// What the journal holds.
+    pub stats: Mutex<JournalStats>,
     pub faults: Faults,
+}
+
+/// What a map's journal holds, kept so that a scan counts the moment it is acknowledged.
+#[derive(Debug, Default)]
+pub(super) struct JournalStats {
+    /// Per source, as of the writer's last change.
+    pub content: Arc<BTreeMap<String, SourceContent>>,
+    /// Bytes of raw scans stored, as of the writer's last change.
+    pub journal_bytes: u64,
+    /// Per source: journaled by the journal thread, not yet integrated by the writer.
+    pub in_flight: BTreeMap<String, u64>,
 }
 
 impl Shared {
