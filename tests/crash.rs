@@ -140,16 +140,18 @@ async fn sigkill_at_random_moments_loses_nothing_acknowledged_and_counts_each_sc
             })
             .collect();
         if cycle < KILLS {
-            // Kill at a random moment once this session has acknowledged something.
+            // Kill at a random moment: after this session has acknowledged a random few scans
+            // (so a fast machine does not run out of scans before the last kill), plus jitter.
             let left = |u: &Vec<VecDeque<usize>>| u.iter().map(VecDeque::len).sum::<usize>();
             let before = left(&unacked.lock().unwrap());
-            for _ in 0..2000 {
-                if before == 0 || left(&unacked.lock().unwrap()) < before {
+            let target = before.saturating_sub(rng.random_range(1..=6));
+            for _ in 0..4000 {
+                if left(&unacked.lock().unwrap()) <= target {
                     break;
                 }
-                tokio::time::sleep(Duration::from_millis(5)).await;
+                tokio::time::sleep(Duration::from_millis(2)).await;
             }
-            let delay = rng.random_range(0..150);
+            let delay = rng.random_range(0..25);
             tokio::time::sleep(Duration::from_millis(delay)).await;
             tokio::task::spawn_blocking(move || server.kill()).await.unwrap();
             let mut progress = 0;
@@ -169,6 +171,21 @@ async fn sigkill_at_random_moments_loses_nothing_acknowledged_and_counts_each_sc
             let info = c.get_map(pb::GetMapRequest { map: "m".into() }).await.unwrap().into_inner();
             for s in &info.sources {
                 assert_eq!(
+                    s.applied + s.pending,
+                    SCANS_PER_SOURCE as u64,
+                    "every acknowledged scan, once: {s:?}"
+                );
+            }
+            // Once integrated, the sequence is complete.
+            let info = loop {
+                let info = c.get_map(pb::GetMapRequest { map: "m".into() }).await.unwrap().into_inner();
+                if info.sources.iter().all(|s| s.pending == 0) {
+                    break info;
+                }
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            };
+            for s in &info.sources {
+                assert_eq!(
                     (s.applied + s.pending, s.gaps, s.highest_seq),
                     (SCANS_PER_SOURCE as u64, 0, Some(SCANS_PER_SOURCE as u64)),
                     "{s:?}"
@@ -177,8 +194,9 @@ async fn sigkill_at_random_moments_loses_nothing_acknowledged_and_counts_each_sc
             assert_eq!(server.terminate().code(), Some(0));
         }
     }
+    eprintln!("{kills_with_progress} of {KILLS} kills interrupted ingest");
     assert!(
-        kills_with_progress >= KILLS / 3,
+        kills_with_progress >= KILLS * 2 / 3,
         "only {kills_with_progress} of {KILLS} kills interrupted ingest"
     );
     // Exactly once: the map equals the offline build of every scan, byte for byte.

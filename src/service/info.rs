@@ -15,10 +15,12 @@ pub struct SourceStats {
     pub applied: u64,
     pub duplicates: u64,
     pub rejected: u64,
+    /// Of the scans the writer has taken in (integrated, or replayed on open).
     pub highest_seq: Option<u64>,
-    /// Journaled, not yet integrated.
+    /// Journaled (acknowledged), not yet integrated; `applied + pending` counts every scan the
+    /// map has acknowledged.
     pub pending: u64,
-    /// Sequence numbers missing between the lowest and the highest accepted.
+    /// Sequence numbers missing between the lowest and the highest (as `highest_seq`).
     pub gaps: u64,
     /// Applied scans whose raw scan was pruned (they cannot be retracted or re-posed).
     pub pruned: u64,
@@ -69,9 +71,11 @@ impl MapService {
         let h = self.handle(name)?;
         let sh = &h.shared;
         let snap = sh.snapshot();
-        let content = sh.content.read().unwrap_or_else(PoisonError::into_inner).clone();
+        let (content, journal_bytes, in_flight) = {
+            let st = lock(&sh.stats);
+            (st.content.clone(), st.journal_bytes, st.in_flight.clone())
+        };
         let mut sources: BTreeMap<String, SourceStats> = content
-            .0
             .iter()
             .map(|(s, c)| {
                 let stats = SourceStats {
@@ -86,6 +90,9 @@ impl MapService {
                 (s.clone(), stats)
             })
             .collect();
+        for (s, n) in in_flight {
+            sources.entry(s).or_default().pending += n;
+        }
         for (s, n) in lock(&sh.session).iter() {
             let e = sources.entry(s.clone()).or_default();
             (e.received, e.duplicates, e.rejected) = (n.received, n.duplicates, n.rejected);
@@ -94,12 +101,12 @@ impl MapService {
             name: name.to_string(),
             params: h.params,
             version: snap.version,
-            scans: content.0.values().map(|c| c.applied).sum(),
+            scans: content.values().map(|c| c.applied).sum(),
             blocks: snap.map.block_count(),
             cells_with_evidence: snap.map.cells_with_evidence(),
             queued: sh.queued.load(Ordering::Relaxed) + sh.backlog.load(Ordering::Relaxed),
             integration_seconds_total: sh.integration_micros.load(Ordering::Relaxed) as f64 / 1e6,
-            journal_bytes: content.1,
+            journal_bytes,
             corrupt_blocks: snap.corrupt.len(),
             read_only: sh.faults.read_only(),
             sources,

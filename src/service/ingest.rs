@@ -164,6 +164,12 @@ impl Journaler {
         }
         if !work.is_empty() {
             self.shared.backlog.fetch_add(work.len(), Ordering::Relaxed);
+            // Counted before anyone hears of it, so a scan is never missing from the stats.
+            let mut st = super::lock(&self.shared.stats);
+            for w in &work {
+                *st.in_flight.entry(w.pending.source.clone()).or_default() += 1;
+            }
+            drop(st);
             if let Err(lost) = self.to_writer.send(Work::Scans(work)) {
                 // The writer is gone (a bug or a panic): the scans are durable and replay on
                 // the next start; tell those who wait.

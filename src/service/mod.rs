@@ -14,7 +14,7 @@
 //! take the current snapshot (an `Arc`): they never wait for a writer nor see a half-applied
 //! scan. A full queue (or too many journaled scans waiting for integration) is an answer
 //! ([`ServiceError::Busy`]), not a wait. A failed write makes the map read-only until writing
-//! works again ([`health`]). On open, journaled scans not yet integrated are replayed before the
+//! works again (see the `health` module). On open, journaled scans not yet integrated are replayed before the
 //! map serves, so the first snapshot holds every acknowledged scan.
 //!
 //! The service is synchronous (std threads and channels); transports adapt the completion
@@ -152,9 +152,20 @@ pub(super) struct Shared {
     pub backlog: AtomicUsize,
     pub integration_micros: AtomicU64,
     pub session: Mutex<BTreeMap<String, SessionCounts>>,
-    /// What the journal holds (published by the writer).
-    pub content: RwLock<Arc<(BTreeMap<String, SourceContent>, u64)>>,
+    /// What the journal holds.
+    pub stats: Mutex<JournalStats>,
     pub faults: Faults,
+}
+
+/// What a map's journal holds, kept so that a scan counts the moment it is acknowledged.
+#[derive(Debug, Default)]
+pub(super) struct JournalStats {
+    /// Per source, as of the writer's last change.
+    pub content: Arc<BTreeMap<String, SourceContent>>,
+    /// Bytes of raw scans stored, as of the writer's last change.
+    pub journal_bytes: u64,
+    /// Per source: journaled by the journal thread, not yet integrated by the writer.
+    pub in_flight: BTreeMap<String, u64>,
 }
 
 impl Shared {

@@ -221,3 +221,26 @@ fn readers_never_see_a_partial_scan() {
     let seen = reader.join().unwrap();
     assert!(seen.contains(&5));
 }
+
+/// Per-source statistics survive a restart; gaps count missing sequence numbers.
+#[test]
+fn source_stats_count_gaps_and_survive_restart() {
+    let dir = tempfile::tempdir().unwrap();
+    let scans = sim_scans(3);
+    {
+        let svc = MapService::open(dir.path(), ServiceConfig::default()).unwrap();
+        svc.create_map("m", MapParams::default()).unwrap();
+        for (s, seq) in scans.iter().zip([1, 2, 5]) {
+            svc.insert_scan_blocking("m", ScanInput { seq, ..s.clone() }).unwrap();
+        }
+        svc.insert_scan_blocking("m", ScanInput { seq: 2, ..scans[0].clone() }).unwrap();
+        let st = &svc.map_info("m").unwrap().sources["robot1"];
+        assert_eq!((st.received, st.applied, st.duplicates, st.highest_seq, st.gaps), (4, 3, 1, Some(5), 2));
+    }
+    let svc = MapService::open(dir.path(), ServiceConfig::default()).unwrap();
+    let info = svc.map_info("m").unwrap();
+    let st = &info.sources["robot1"];
+    assert_eq!((st.received, st.applied, st.duplicates, st.highest_seq, st.gaps), (0, 3, 0, Some(5), 2));
+    assert_eq!((info.scans, info.version, info.read_only.as_deref()), (3, 3, None));
+    assert!(info.journal_bytes > 0);
+}

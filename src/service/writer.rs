@@ -3,7 +3,7 @@
 
 use super::health::Faults;
 use super::ops::Op;
-use super::{Ack, Done, ServiceConfig, ServiceError, Shared, Snapshot};
+use super::{Ack, Done, JournalStats, ServiceConfig, ServiceError, Shared, Snapshot};
 use crate::store::{Change, DurableMap, Pending, Recovered, Retention, now_nanos};
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
@@ -34,7 +34,9 @@ pub(super) struct Writer {
     pub(super) shared: Arc<Shared>,
     /// Journaled scans not yet integrated, and (in step) who waits for each.
     pending: Vec<Pending>,
-    waiters: Vec<(Option<Done>, usize)>,
+    /// Who waits, dropped points, and whether the scan is counted in flight (it came from the
+    /// journal thread, not from the replay on open).
+    waiters: Vec<(Option<Done>, usize, bool)>,
     last_prune: Instant,
     retry: Duration,
 }
@@ -83,10 +85,14 @@ impl Writer {
             backlog: AtomicUsize::new(left.len()),
             integration_micros: AtomicU64::new(0),
             session: Mutex::new(BTreeMap::new()),
-            content: RwLock::new(Arc::new((map.journal().content(), map.stored_bytes()))),
+            stats: Mutex::new(JournalStats {
+                content: Arc::new(map.journal().content()),
+                journal_bytes: map.stored_bytes(),
+                in_flight: BTreeMap::new(),
+            }),
             faults,
         });
-        let waiters = left.iter().map(|_| (None, 0)).collect();
+        let waiters = left.iter().map(|_| (None, 0, false)).collect();
         let last_prune = Instant::now().checked_sub(PRUNE_EVERY).unwrap_or_else(Instant::now);
         let writer = Self {
             map,
@@ -126,7 +132,7 @@ impl Writer {
             Work::Scans(w) => {
                 for w in w {
                     self.pending.push(w.pending);
-                    self.waiters.push((w.done, w.dropped_points));
+                    self.waiters.push((w.done, w.dropped_points, true));
                 }
             }
             Work::Op(op, done) => {
@@ -159,9 +165,15 @@ impl Writer {
                 self.shared.integration_micros.fetch_add(us, Ordering::Relaxed);
                 self.shared.faults.apply_ok();
                 self.shared.backlog.fetch_sub(self.pending.len(), Ordering::Relaxed);
+                let in_flight = self
+                    .pending
+                    .iter()
+                    .zip(&self.waiters)
+                    .filter(|(_, w)| w.2)
+                    .map(|(p, _)| p.source.as_str());
+                self.publish_applied(in_flight);
                 self.pending.clear();
-                self.publish();
-                for (done, dropped_points) in self.waiters.drain(..) {
+                for (done, dropped_points, _) in self.waiters.drain(..) {
                     if let Some(done) = done {
                         done(Ok(Ack {
                             applied: true,
@@ -186,7 +198,7 @@ impl Writer {
     }
 
     fn fail_waiters(&mut self, err: impl Fn() -> ServiceError) {
-        for (done, _) in &mut self.waiters {
+        for (done, _, _) in &mut self.waiters {
             if let Some(done) = done.take() {
                 done(Err(err()));
             }
@@ -195,14 +207,28 @@ impl Writer {
 
     /// Publishes the map as it is now: a new snapshot and the journal's content.
     pub(super) fn publish(&self) {
+        self.publish_applied(std::iter::empty());
+    }
+
+    /// As [`Self::publish`], with the scans of `applied` sources (just integrated) no longer in
+    /// flight.
+    fn publish_applied<'a>(&self, applied: impl Iterator<Item = &'a str>) {
         let snap = Snapshot {
             version: self.map.version(),
             map: self.map.map().clone(),
             corrupt: self.shared.snapshot().corrupt.clone(),
         };
         *self.shared.snapshot.write().unwrap_or_else(PoisonError::into_inner) = Arc::new(snap);
-        let content = Arc::new((self.map.journal().content(), self.map.stored_bytes()));
-        *self.shared.content.write().unwrap_or_else(PoisonError::into_inner) = content;
+        let content = Arc::new(self.map.journal().content());
+        let mut st = super::lock(&self.shared.stats);
+        st.content = content;
+        st.journal_bytes = self.map.stored_bytes();
+        for source in applied {
+            if let Some(n) = st.in_flight.get_mut(source) {
+                *n = n.saturating_sub(1);
+            }
+        }
+        st.in_flight.retain(|_, n| *n > 0);
     }
 
     /// Journal retention: after every batch for size limits, every [`PRUNE_EVERY`] for age.

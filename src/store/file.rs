@@ -8,7 +8,7 @@ use super::record::{encode_record, fingerprint};
 use super::schema::{create_schema, open_with, read_params, read_version};
 use super::{StoreError, encode_block, sql};
 use crate::core::{EditedBlocks, EvidenceMap, MapParams, RawScan};
-use rusqlite::{Connection, OpenFlags, Transaction, params};
+use rusqlite::{Connection, OpenFlags, Transaction, TransactionBehavior, params};
 use std::path::{Path, PathBuf};
 
 /// A scan to journal.
@@ -153,7 +153,9 @@ impl MapFile {
         let e = sql(&self.path);
         let encoded: Vec<(Vec<u8>, u32)> =
             scans.iter().map(|s| (encode_record(&s.scan), fingerprint(&s.source, s.seq, &s.scan))).collect();
-        let tx = self.conn.transaction().map_err(&e)?;
+        // IMMEDIATE takes the write lock up front: a writer on another connection of the same
+        // file (the server journals and integrates on two) waits for it instead of failing.
+        let tx = self.conn.transaction_with_behavior(TransactionBehavior::Immediate).map_err(&e)?;
         let mut out = Vec::with_capacity(scans.len());
         for (s, (record, crc)) in scans.iter().zip(&encoded) {
             let entry = JournalEntry {
@@ -173,7 +175,7 @@ impl MapFile {
     /// Applies one change atomically; returns the ids of the imported rows, in order.
     pub fn commit(&mut self, c: &Commit<'_>) -> Result<Vec<i64>, StoreError> {
         let e = sql(&self.path);
-        let tx = self.conn.transaction().map_err(&e)?;
+        let tx = self.conn.transaction_with_behavior(TransactionBehavior::Immediate).map_err(&e)?;
         write_blocks(&tx, &self.path, c.blocks)?;
         {
             let mut status = tx.prepare_cached("UPDATE scans SET status = ?2 WHERE id = ?1").map_err(&e)?;
