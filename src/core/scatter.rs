@@ -203,6 +203,9 @@ impl Scatter {
             let block = self.grid_block_of_slot(s);
             let origin = block.map(|v| v * B);
             for &(p, hit) in &sorted[start..end] {
+                if self.brick.full() {
+                    self.fold_brick(block);
+                }
                 self.brick.add_point::<W, W3>(p, hit, origin, geo, table);
             }
             self.fold_brick(block);
@@ -242,14 +245,14 @@ impl Scatter {
                         let from = ((sz.0 + z) * e + sy.0 + y) * e + sx.0;
                         let to = ((sz.1 + z) * b + sy.1 + y) * b + sx.1;
                         for (d, s) in dst[to..to + sx.2].iter_mut().zip(&mut src[from..from + sx.2]) {
-                            *d += *s;
+                            *d += i64::from(*s);
                             *s = 0;
                         }
                     }
                 }
             }
         }
-        brick.touched = [0; 2];
+        brick.folded();
     }
 
     fn grid_block_of_slot(&self, s: usize) -> [i32; 3] {
