@@ -18,11 +18,14 @@
 //!
 //! Stencil path: ~190k in-ball pairs per scan at ~13–17 ns per pair (~2.4–3.4 ms), a flat
 //! profile of per-row bookkeeping (~45 instructions per pair). Window path: ~370k lanes per scan
-//! (64 per point, ~52% inside the ball) in 1.5–2.4 ms with the AVX2 lookups of
-//! [`super::simd`], 2.7–3.0 ms without them. Its profile: the 64 lookups ~35% (two gathers per
-//! 8 lanes; gathers are slow on this CPU), window accumulation and point split ~40%, brick folding
-//! ~25%. The next steps: evaluate only the rows inside the ball, fold with vector adds, and
-//! drop the per-scan delta blocks' zeroing by accumulating straight into sparse blocks.
+//! (64 per point, ~52% inside the ball) in 1.3–1.8 ms with the AVX2 lookups of [`super::simd`]
+//! adding straight into an `i32` brick. Whole-ingest profile (perf, `bench ingest`): the 64
+//! lookups + adds ~21% (two gathers per 8 lanes; gathers are slow on this CPU), brick folding
+//! ~20% (stalls on the 8 KiB `i64` delta blocks, which miss L1), point split and window setup
+//! ~13%, training data (voxel hash) ~25%, map update ~6%, zeroing / copying block buffers ~5%.
+//! The next steps: fold bricks straight into the map instead of per-scan delta blocks (the
+//! `ScanDelta` API is what the service journals and subtracts, so this is an API change), and
+//! evaluate only the row pairs inside the ball.
 
 use super::evidence::{BlockEvidence, PairGeometry, ScanDelta, split_point};
 use super::kernel::KernelTable;
