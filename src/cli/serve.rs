@@ -118,6 +118,9 @@ impl Running {
     /// Stops accepting requests, finishes those in flight, drains every map's queue.
     pub async fn shutdown(self) -> Result<()> {
         let _ = self.stop.send(true);
+        // Change streams (gRPC WatchUpdates, HTTP SSE) never end by themselves; end them so
+        // the graceful shutdown does not wait for their connections forever.
+        self.service.close_feeds();
         for t in self.tasks {
             t.await.context("server task panicked")??;
         }
@@ -133,6 +136,7 @@ pub async fn start(c: &ServerConfig) -> Result<Running> {
         queue_capacity: c.queue_capacity,
         threads_per_scan: c.threads_per_scan,
         limits: ScanLimits { max_points: c.max_points, ..ScanLimits::default() },
+        ..ServiceConfig::default()
     };
     let dir = c.data_dir.clone();
     let service = Arc::new(

@@ -12,9 +12,11 @@
 //! callback of [`MapService::submit_scan`] to their own runtime. It knows nothing of any wire
 //! format.
 
+mod feed;
 mod scan;
 mod writer;
 
+pub use feed::{BlockBox, BlockVersions, MapUpdate, Next, ScanPose, Subscription, UpdateKind};
 pub use scan::{ScanInput, ScanLimits};
 
 use crate::core::{EvidenceMap, MapParams};
@@ -34,11 +36,14 @@ pub struct ServiceConfig {
     pub threads_per_scan: usize,
     /// Limits on one scan.
     pub limits: ScanLimits,
+    /// Updates each map's change feed keeps for live subscribers (one per applied scan); one
+    /// that falls further behind is resynchronised from the snapshot. Default 256.
+    pub feed_capacity: usize,
 }
 
 impl Default for ServiceConfig {
     fn default() -> Self {
-        Self { queue_capacity: 64, threads_per_scan: 1, limits: ScanLimits::default() }
+        Self { queue_capacity: 64, threads_per_scan: 1, limits: ScanLimits::default(), feed_capacity: 256 }
     }
 }
 
@@ -84,6 +89,8 @@ pub type Done = Box<dyn FnOnce(Result<Ack, ServiceError>) + Send>;
 pub struct Snapshot {
     pub version: u64,
     pub map: EvidenceMap,
+    /// Per block, the version at which it last changed (see [`MapService::changes_since`]).
+    pub block_versions: BlockVersions,
 }
 
 /// Per-source ingest counters.
@@ -117,6 +124,7 @@ struct MapHandle {
     integration_micros: Arc<std::sync::atomic::AtomicU64>,
     snapshot: Arc<RwLock<Arc<Snapshot>>>,
     sources: Arc<Mutex<BTreeMap<String, SourceStats>>>,
+    feed: Arc<feed::Feed>,
     writer: Mutex<Option<std::thread::JoinHandle<()>>>,
 }
 
@@ -177,8 +185,16 @@ impl MapService {
 
     fn start(&self, name: String, file: MapFile, map: EvidenceMap, scans: Vec<(String, u64)>) {
         let (tx, rx) = std::sync::mpsc::sync_channel(self.config.queue_capacity.max(1));
-        let snapshot =
-            Arc::new(RwLock::new(Arc::new(Snapshot { version: scans.len() as u64, map: map.clone() })));
+        let version = scans.len() as u64;
+        // The per-block history is not stored: loaded blocks count as changed at the loaded
+        // version (see the `feed` module).
+        let block_versions: BlockVersions = map.blocks_unsorted().map(|(k, _)| (*k, version)).collect();
+        let snapshot = Arc::new(RwLock::new(Arc::new(Snapshot {
+            version,
+            map: map.clone(),
+            block_versions: block_versions.clone(),
+        })));
+        let feed = Arc::new(feed::Feed::new(self.config.feed_capacity));
         let params = *map.params();
         let sources = Arc::new(Mutex::new(BTreeMap::new()));
         let queued = Arc::new(std::sync::atomic::AtomicUsize::new(0));
@@ -188,8 +204,9 @@ impl MapService {
             sources: sources.clone(),
             queued: queued.clone(),
             integration_micros: integration_micros.clone(),
+            feed: feed.clone(),
         };
-        let writer = Writer::new(file, map, scans, shared, &self.config);
+        let writer = Writer::new(file, map, scans, block_versions, shared, &self.config);
         let join = std::thread::Builder::new()
             .name(format!("bgkmap-writer-{name}"))
             .spawn(move || writer.run(rx))
@@ -201,6 +218,7 @@ impl MapService {
             integration_micros,
             snapshot,
             sources,
+            feed,
             writer: Mutex::new(join),
         };
         self.maps.write().unwrap_or_else(PoisonError::into_inner).insert(name, Arc::new(handle));
@@ -310,6 +328,7 @@ impl MapService {
             if let Some(j) = lock(&h.writer).take() {
                 let _ = j.join();
             }
+            h.feed.close();
         }
     }
 }
@@ -320,5 +339,7 @@ impl Drop for MapService {
     }
 }
 
+#[cfg(test)]
+mod feed_tests;
 #[cfg(test)]
 mod tests;

@@ -36,6 +36,7 @@ impl Default for ScanLimits {
 pub(super) struct PreparedScan {
     pub source: String,
     pub seq: u64,
+    pub world_from_sensor: Pose,
     pub origin_world: [f64; 3],
     pub points_world: Vec<[f32; 3]>,
     pub max_range_m: Option<f64>,
@@ -86,6 +87,7 @@ impl ScanInput {
         Ok(PreparedScan {
             source: self.source.clone(),
             seq: self.seq,
+            world_from_sensor: self.world_from_sensor,
             origin_world: self.world_from_sensor.translation_m,
             points_world: points,
             max_range_m: self.max_range_m,

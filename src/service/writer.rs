@@ -1,7 +1,8 @@
 //! The single writer of one map: integrate, persist, publish.
 
+use super::feed::{Feed, MapUpdate, ScanPose, UpdateKind};
 use super::scan::PreparedScan;
-use super::{Ack, Done, ServiceConfig, ServiceError, Snapshot, SourceStats};
+use super::{Ack, BlockVersions, Done, ServiceConfig, ServiceError, Snapshot, SourceStats};
 use crate::core::{EvidenceMap, Integrator};
 use crate::store::MapFile;
 use std::collections::{BTreeMap, HashSet};
@@ -20,6 +21,7 @@ pub(super) struct Shared {
     pub sources: Arc<Mutex<BTreeMap<String, SourceStats>>>,
     pub queued: Arc<AtomicUsize>,
     pub integration_micros: Arc<AtomicU64>,
+    pub feed: Arc<Feed>,
 }
 
 pub(super) struct Writer {
@@ -28,6 +30,7 @@ pub(super) struct Writer {
     integrator: Integrator,
     applied: HashSet<(String, u64)>,
     version: u64,
+    block_versions: BlockVersions,
     threads: usize,
     shared: Shared,
 }
@@ -37,12 +40,14 @@ impl Writer {
         file: MapFile,
         map: EvidenceMap,
         scans: Vec<(String, u64)>,
+        block_versions: BlockVersions,
         shared: Shared,
         config: &ServiceConfig,
     ) -> Self {
         Self {
             integrator: Integrator::new(*map.params()),
             version: scans.len() as u64,
+            block_versions,
             applied: scans.into_iter().collect(),
             file,
             map,
@@ -80,11 +85,33 @@ impl Writer {
         // Persist first: the map only moves on once the file holds the scan.
         let rows: Vec<_> = updated.iter().map(|(k, b)| (*k, b.as_deref())).collect();
         self.file.commit(&rows, &[(scan.source.as_str(), scan.seq)])?;
+        let mut blocks: Vec<_> = updated.iter().map(|(k, _)| *k).collect();
+        blocks.sort_unstable();
         self.map.set_blocks(updated);
         self.applied.insert(id);
         self.version += 1;
-        let snap = Arc::new(Snapshot { version: self.version, map: self.map.clone() });
+        for k in &blocks {
+            self.block_versions.insert(*k, self.version);
+        }
+        let snap = Arc::new(Snapshot {
+            version: self.version,
+            map: self.map.clone(),
+            block_versions: self.block_versions.clone(),
+        });
         *self.shared.snapshot.write().unwrap_or_else(PoisonError::into_inner) = snap;
+        // After the snapshot: a subscriber never hears of a version it cannot read.
+        self.shared.feed.publish(MapUpdate {
+            kind: UpdateKind::Live,
+            from_version: self.version - 1,
+            version: self.version,
+            blocks,
+            poses: vec![ScanPose {
+                version: self.version,
+                source: scan.source.clone(),
+                seq: scan.seq,
+                world_from_sensor: scan.world_from_sensor,
+            }],
+        });
         Ok(ack(true, self.version))
     }
 
