@@ -105,7 +105,7 @@ pub async fn routes_with_health(
 // Conversions (wire → core). Errors name the proto field path.
 
 /// `INVALID_ARGUMENT` naming `bgkmap.v1.<field>`.
-fn bad(field: &str, reason: impl std::fmt::Display) -> Status {
+pub(super) fn bad(field: &str, reason: impl std::fmt::Display) -> Status {
     Status::invalid_argument(format!("bgkmap.v1.{field}: {reason}"))
 }
 
@@ -114,7 +114,7 @@ fn service_err(e: ServiceError) -> Status {
 }
 
 /// Exactly three values (x, y, z).
-fn vec3(v: &[f64], field: &str) -> Result<[f64; 3], Status> {
+pub(super) fn vec3(v: &[f64], field: &str) -> Result<[f64; 3], Status> {
     <[f64; 3]>::try_from(v).map_err(|_| bad(field, format!("expected 3 values (x, y, z), got {}", v.len())))
 }
 
@@ -655,6 +655,15 @@ impl pb::map_service_server::MapService for MapGrpc {
         let (tx, rx) = tokio::sync::mpsc::channel(4);
         tokio::task::spawn_blocking(move || export_cells(&snap, bounds, &th, &tx));
         Ok(Response::new(ExportChunks(rx)))
+    }
+
+    type WatchUpdatesStream = super::watch::UpdateStream;
+
+    async fn watch_updates(
+        &self,
+        request: Request<pb::WatchUpdatesRequest>,
+    ) -> Result<Response<super::watch::UpdateStream>, Status> {
+        Ok(Response::new(super::watch::watch_updates(&self.service, request.into_inner())?))
     }
 }
 

@@ -1,5 +1,6 @@
 //! HTTP JSON transport (axum), mirroring the gRPC calls under `/v1/…`, plus `/healthz`,
-//! `/readyz` and `/metrics` (Prometheus text).
+//! `/readyz` and `/metrics` (Prometheus text). The web viewer, its binary cells endpoint and
+//! the change stream (SSE) are merged in from [`super::viewer`] and [`super::watch`].
 //!
 //! Handlers parse the body themselves so a bad request gets a 400 whose message names the field
 //! (serde's "missing field `seq`", or ours), convert, call one service method, convert back.
@@ -54,8 +55,12 @@ struct AppState {
 pub struct ApiError(StatusCode, String);
 
 impl ApiError {
-    fn bad(msg: impl Into<String>) -> Self {
+    pub(super) fn bad(msg: impl Into<String>) -> Self {
         Self(StatusCode::BAD_REQUEST, msg.into())
+    }
+
+    pub(super) fn internal(msg: impl Into<String>) -> Self {
+        Self(StatusCode::INTERNAL_SERVER_ERROR, msg.into())
     }
 }
 
@@ -80,6 +85,7 @@ type ApiResult = Result<Response, ApiError>;
 /// The HTTP router.
 pub fn router(service: Arc<MapService>, config: HttpConfig) -> Router {
     let limit = config.max_body_bytes;
+    let viewer = super::viewer::routes(service.clone(), config.max_box_cells);
     let state = AppState { service, config, counters: Arc::default() };
     Router::new()
         .route("/healthz", get(|| async { "ok\n" }))
@@ -93,6 +99,7 @@ pub fn router(service: Arc<MapService>, config: HttpConfig) -> Router {
         .route("/v1/maps/{map}/query/rays", post(rays_query))
         .layer(DefaultBodyLimit::max(limit))
         .with_state(state)
+        .merge(viewer)
 }
 
 fn parse<T: serde::de::DeserializeOwned>(body: &Bytes) -> Result<T, ApiError> {

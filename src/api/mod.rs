@@ -17,6 +17,8 @@ pub mod codec;
 pub mod grpc;
 pub mod http;
 pub mod status;
+pub mod viewer;
+pub mod watch;
 
 impl pb::Scan {
     /// A world-frame scan seen from `origin_world` (identity rotation), points packed as

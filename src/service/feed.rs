@@ -341,8 +341,13 @@ impl MapService {
             st.next_id += 1;
             st.next_id
         };
-        let sub =
-            Subscription { feed: h.feed.clone(), snapshot: h.snapshot.clone(), id, seen: snap.version, filter };
+        let sub = Subscription {
+            feed: h.feed.clone(),
+            snapshot: h.snapshot.clone(),
+            id,
+            seen: snap.version,
+            filter,
+        };
         Ok((catch_up, sub))
     }
 
