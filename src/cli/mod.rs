@@ -17,6 +17,7 @@ pub mod plot;
 #[cfg(feature = "server")]
 pub mod serve;
 mod simulate;
+mod slice;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
@@ -38,7 +39,7 @@ enum Command {
     Build(build::BuildArgs),
     /// Sum the evidence of several map files (exact; parameters must match).
     Merge(build::MergeArgs),
-    /// Write a map's cells as CSV, OctoMap .bt or PLY.
+    /// Write a map's cells as CSV, OctoMap .bt or PLY, or one layer as a PNG picture.
     Export(export::ExportArgs),
     /// ROC / AUC of a map against a ground-truth OctoMap .bt.
     Eval(eval_cmd::EvalArgs),
