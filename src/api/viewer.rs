@@ -39,7 +39,7 @@
 //! unknown) to them gets exactly the server's states for any thresholds.
 
 use super::http::ApiError;
-use super::watch::{parse_box, parse_xyz, pose_json, sse_updates};
+use super::watch::{WorldBox, parse_box, parse_xyz, pose_json, sse_updates};
 use crate::core::key::{BLOCK_EDGE, BLOCK_SHIFT};
 use crate::core::query::{BoxCell, BoxError, BoxQuery, query_box, query_points};
 use crate::core::{BlockKey, CellKey, CellState, EvidenceMap, Thresholds};
@@ -115,7 +115,7 @@ fn parse_num<T: std::str::FromStr>(q: &HashMap<String, String>, name: &str) -> R
 
 /// A cells request, validated.
 struct CellsQuery {
-    bbox: Option<([f64; 3], [f64; 3])>,
+    bbox: Option<WorldBox>,
     coarsen: u8,
     state: Option<CellState>,
     th: Thresholds,

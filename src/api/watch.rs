@@ -183,8 +183,11 @@ pub fn parse_xyz(s: &str, name: &str) -> Result<[f64; 3], ApiError> {
         .ok_or_else(|| ApiError::bad(format!("{name}: expected three finite numbers x,y,z, got {s:?}")))
 }
 
+/// A world box `(min, max)`, metres.
+pub type WorldBox = ([f64; 3], [f64; 3]);
+
 /// `min=x,y,z&max=x,y,z` (both or neither).
-pub fn parse_box(q: &HashMap<String, String>) -> Result<Option<([f64; 3], [f64; 3])>, ApiError> {
+pub fn parse_box(q: &HashMap<String, String>) -> Result<Option<WorldBox>, ApiError> {
     match (q.get("min"), q.get("max")) {
         (None, None) => Ok(None),
         (Some(a), Some(b)) => Ok(Some((parse_xyz(a, "min")?, parse_xyz(b, "max")?))),
