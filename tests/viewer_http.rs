@@ -105,7 +105,10 @@ async fn page_cells_cell_and_poses() {
     let mut integ = Integrator::new(MapParams::default());
     for (i, s) in scans.iter().enumerate() {
         let scan = pb::Scan::world("r", i as u64 + 1, s.origin, &s.points_world);
-        client.insert_scan(pb::InsertScanRequest { map: "m".into(), scan: Some(scan) }).await.unwrap();
+        client
+            .insert_scan(pb::InsertScanRequest { map: "m".into(), scan: Some(scan), wait_applied: true })
+            .await
+            .unwrap();
         let mut next = offline.last().unwrap().clone();
         integ.integrate(&mut next, &s.points_world, s.origin, 1);
         offline.push(next);
@@ -220,7 +223,7 @@ fn a_box_over_the_limit_is_coarsened_until_it_fits() {
     let mut s = std::net::TcpStream::connect(addr).unwrap();
     write!(
         s,
-        "POST /v1/maps/m/scans HTTP/1.1\r\nHost: x\r\nContent-Length: {}\r\nConnection: close\r\n\r\n",
+        "POST /v1/maps/m/scans?wait_applied=true HTTP/1.1\r\nHost: x\r\nContent-Length: {}\r\nConnection: close\r\n\r\n",
         body.len()
     )
     .unwrap();

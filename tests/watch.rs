@@ -1,6 +1,7 @@
 //! The change stream against the real `bgkmap serve` binary: gRPC `WatchUpdates` (a late
 //! subscriber asking "since version N" ends with the same blocks as one that watched from the
-//! start; box filter; bad requests) and the same stream as HTTP server-sent events.
+//! start; a cache from before a restart is reset; box filter; bad requests) and the same stream
+//! as HTTP server-sent events.
 #![cfg(feature = "server")]
 #![allow(clippy::unwrap_used)]
 
@@ -69,6 +70,8 @@ fn scan_req(seq: u64, s: &bgkmap::sim::SimScan) -> pb::InsertScanRequest {
     pb::InsertScanRequest {
         map: "m".into(),
         scan: Some(pb::Scan::world("robot", seq, s.origin, &s.points_world)),
+        // Integrated before the next is sent: one live update per scan.
+        wait_applied: true,
     }
 }
 
@@ -142,6 +145,55 @@ async fn a_late_subscriber_since_n_ends_with_the_same_blocks_as_an_early_one() {
     assert!(status.success(), "{status}");
     let end = early.message().await;
     assert!(matches!(&end, Err(s) if s.code() == Code::Unavailable) || matches!(end, Ok(None)), "{end:?}");
+}
+
+async fn first_update(client: &mut Client, since: u64) -> pb::MapUpdate {
+    let req = pb::WatchUpdatesRequest { map: "m".into(), since_version: Some(since), ..Default::default() };
+    client.watch_updates(req).await.unwrap().into_inner().message().await.unwrap().unwrap()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_cache_from_before_a_restart_is_reset_not_left_stale() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = common::start_serve(dir.path(), &[]);
+    let mut client = connect(server.grpc_url()).await;
+    client.create_map(pb::CreateMapRequest { map: "m".into(), params: None }).await.unwrap();
+    let (_, scans) = simulate(0, 2, &Lidar::default());
+    for (i, s) in scans.iter().enumerate() {
+        client.insert_scan(scan_req(i as u64 + 1, s)).await.unwrap();
+    }
+    // A patch far from the room from a second source: blocks only it touches.
+    let points: Vec<[f32; 3]> =
+        (0..400).map(|i| [30.0 + (i % 20) as f32 * 0.05, 30.0 + (i / 20) as f32 * 0.05, 0.5]).collect();
+    let scan = pb::Scan::world("robot2", 1, [30.5, 30.5, 2.5], &points);
+    client
+        .insert_scan(pb::InsertScanRequest { map: "m".into(), scan: Some(scan), wait_applied: true })
+        .await
+        .unwrap();
+    let mut cache = export(&mut client, None).await;
+    let patch = blocks_of(&first_update(&mut client, 2).await);
+    assert!(!patch.is_empty() && patch.iter().all(|b| cache.contains_key(b)));
+    let retract = pb::RetractScansRequest { map: "m".into(), source: "robot2".into(), ..Default::default() };
+    assert_eq!(client.retract_scans(retract).await.unwrap().into_inner().version, 4);
+    assert!(server.terminate().success());
+
+    // Versions resume from the map file; the blocks the retraction emptied are not known any more.
+    let server = common::start_serve(dir.path(), &[]);
+    let mut client = connect(server.grpc_url()).await;
+    let u = first_update(&mut client, 3).await;
+    assert_eq!((u.kind, u.from_version, u.version, u.reset), (pb::UpdateKind::CatchUp as i32, 3, 4, true));
+    let listed = blocks_of(&u);
+    assert!(patch.iter().all(|b| !listed.contains(b)));
+    cache.retain(|b, _| listed.contains(b));
+    refresh(&mut client, &mut cache, &listed, u.resolution).await;
+    assert_eq!(cache, export(&mut client, None).await, "the reset cache holds exactly the map");
+    let now = first_update(&mut client, 4).await;
+    assert!(now.block.is_empty() && !now.reset);
+    // The viewer's binary `since` answer cannot list the forgotten blocks either: 410.
+    let (code, body) = common::http_request(server.http_addr, "GET", "/v1/maps/m/cells?since=3", b"");
+    assert_eq!(code, 410, "{body}");
+    assert!(body.contains("load the whole map"), "{body}");
+    assert_eq!(common::http_request(server.http_addr, "GET", "/v1/maps/m/cells?since=4", b"").0, 200);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -16,8 +16,11 @@
 //!   refused with `INVALID_ARGUMENT` instead of failing on the wire.
 //! - `Export` streams cells with evidence sorted by key (x, then y, then z) in chunks of at most
 //!   [`EXPORT_CHUNK_CELLS`] cells, always at least one chunk (so `resolution` is known).
-//! - `InsertScans` applies its scans in order, each before the next is read, so a failure
-//!   (reported as `request i: …` with the original code) leaves exactly the earlier ones applied.
+//! - `InsertScan` answers once the scan is durable in the journal (`version` is then the map
+//!   version at that moment), or with `wait_applied` once it is integrated.
+//! - `InsertScans` submits its scans in order with up to 32 in flight; a failure (reported as `request i: …` with the original code) means every
+//!   earlier scan is durable (later ones may be: resending is safe).
+//! - Answers that depend on a corrupt block are `DATA_LOSS`; other queries are answered.
 
 use super::pb;
 use super::pb::map_service_server::MapServiceServer;
@@ -25,7 +28,7 @@ use super::status::to_grpc;
 use crate::core::key::BLOCK_CELLS;
 use crate::core::query::{BoxError, BoxQuery, RayHit, StopAt, cast_ray, count_box, query_box, query_points};
 use crate::core::{CellKey, CellState, MapParams, PointFrame, Pose, RangeMode, Thresholds};
-use crate::service::{Ack, MapInfo, MapService, ScanInput, ServiceError, Snapshot};
+use crate::service::{Ack, MapInfo, MapService, ScanInput, ServiceError, Snapshot, SubmitOptions};
 use std::pin::Pin;
 use std::sync::Arc;
 use std::task::{Context, Poll};
@@ -109,7 +112,7 @@ pub(super) fn bad(field: &str, reason: impl std::fmt::Display) -> Status {
     Status::invalid_argument(format!("bgkmap.v1.{field}: {reason}"))
 }
 
-fn service_err(e: ServiceError) -> Status {
+pub(super) fn service_err(e: ServiceError) -> Status {
     to_grpc(&e)
 }
 
@@ -167,7 +170,7 @@ fn thresholds(t: Option<pb::Thresholds>, map_default: Thresholds, field: &str) -
     Ok(th)
 }
 
-fn scan_input(scan: Option<pb::Scan>) -> Result<ScanInput, Status> {
+pub(super) fn scan_input(scan: Option<pb::Scan>) -> Result<ScanInput, Status> {
     let scan = scan.ok_or_else(|| bad("InsertScanRequest.scan", "missing"))?;
     let pose = scan.world_from_sensor.ok_or_else(|| bad("Scan.world_from_sensor", "missing"))?;
     let translation_m = <[f64; 3]>::try_from(pose.translation.as_slice()).map_err(|_| {
@@ -194,6 +197,7 @@ fn scan_input(scan: Option<pb::Scan>) -> Result<ScanInput, Status> {
         frame,
         points: xyz_f32(&scan.xyz_f32, "Scan.xyz_f32")?,
         max_range_m: scan.max_range,
+        stamp_nanos: scan.stamp_nanos,
     })
 }
 
@@ -254,6 +258,10 @@ fn map_info_to_pb(info: MapInfo) -> pb::MapInfo {
         blocks: info.blocks as u64,
         cells_with_evidence: info.cells_with_evidence as u64,
         queued: info.queued as u64,
+        scans: info.scans,
+        journal_bytes: info.journal_bytes,
+        corrupt_blocks: info.corrupt_blocks as u64,
+        read_only: info.read_only.unwrap_or_default(),
         sources: info
             .sources
             .into_iter()
@@ -264,6 +272,10 @@ fn map_info_to_pb(info: MapInfo) -> pb::MapInfo {
                 duplicates: s.duplicates,
                 rejected: s.rejected,
                 highest_seq: s.highest_seq,
+                pending: s.pending,
+                gaps: s.gaps,
+                pruned: s.pruned,
+                retracted: s.retracted,
             })
             .collect(),
     }
@@ -296,22 +308,26 @@ async fn compute<T: Send + 'static>(
 // Handlers.
 
 impl MapGrpc {
-    /// Submits one scan and waits until the writer has applied and stored it.
-    async fn insert(&self, map: &str, scan: ScanInput) -> Result<Ack, Status> {
-        let (tx, rx) = tokio::sync::oneshot::channel();
-        self.service
-            .submit_scan(
-                map,
-                scan,
-                Box::new(move |r| {
-                    let _ = tx.send(r);
-                }),
-            )
-            .map_err(service_err)?;
+    /// Submits one scan and waits until it is durable (or, with `wait_applied`, integrated).
+    async fn insert(&self, map: &str, scan: ScanInput, wait_applied: bool) -> Result<Ack, Status> {
+        let rx = self.submit(map, scan, wait_applied)?;
         match rx.await {
             Ok(r) => r.map_err(service_err),
             Err(_) => Err(service_err(ServiceError::ShuttingDown)),
         }
+    }
+
+    /// Submits one scan; the receiver gets its outcome.
+    pub(super) fn submit(
+        &self,
+        map: &str,
+        scan: ScanInput,
+        wait_applied: bool,
+    ) -> Result<tokio::sync::oneshot::Receiver<Result<Ack, ServiceError>>, Status> {
+        let (tx, rx) = tokio::sync::oneshot::channel();
+        let options = SubmitOptions { wait_applied };
+        self.service.submit(map, scan, options, Box::new(move |r| drop(tx.send(r)))).map_err(service_err)?;
+        Ok(rx)
     }
 
     fn snapshot(&self, map: &str) -> Result<Arc<Snapshot>, Status> {
@@ -391,9 +407,15 @@ fn cast_rays_answer(
     th: &Thresholds,
 ) -> Result<pb::CastRaysResponse, Status> {
     let mut results = Vec::with_capacity(rays.len());
+    let res = snap.map.params().resolution_m;
     for (i, r) in rays.iter().enumerate() {
         let hit = cast_ray(&snap.map, r.origin, r.direction, r.max_range, stop, th)
             .map_err(|e| bad(&format!("CastRaysRequest.rays[{i}]"), e))?;
+        let reach = match hit {
+            RayHit::Clear => r.max_range,
+            RayHit::Blocked { distance_m, .. } => distance_m + res * 3f64.sqrt(),
+        };
+        snap.check_ray(r.origin, r.direction, reach, &format!("ray {i}")).map_err(service_err)?;
         results.push(match hit {
             RayHit::Clear => pb::RayResult { blocked: false, distance: r.max_range, ..Default::default() },
             RayHit::Blocked { cell, distance_m, estimate } => pb::RayResult {
@@ -514,7 +536,7 @@ impl pb::map_service_server::MapService for MapGrpc {
     ) -> Result<Response<pb::InsertScanResponse>, Status> {
         let req = request.into_inner();
         let scan = scan_input(req.scan)?;
-        let ack = self.insert(&req.map, scan).await?;
+        let ack = self.insert(&req.map, scan, req.wait_applied).await?;
         Ok(Response::new(pb::InsertScanResponse {
             applied: ack.applied,
             version: ack.version,
@@ -526,31 +548,7 @@ impl pb::map_service_server::MapService for MapGrpc {
         &self,
         request: Request<Streaming<pb::InsertScanRequest>>,
     ) -> Result<Response<pb::InsertScansResponse>, Status> {
-        let mut stream = request.into_inner();
-        let mut summary = pb::InsertScansResponse::default();
-        let mut index = 0u64;
-        while let Some(req) = stream.message().await? {
-            let outcome = match scan_input(req.scan) {
-                Ok(scan) => self.insert(&req.map, scan).await,
-                Err(e) => Err(e),
-            };
-            let ack = outcome.map_err(|s| {
-                Status::with_metadata(
-                    s.code(),
-                    format!("request {index}: {}", s.message()),
-                    s.metadata().clone(),
-                )
-            })?;
-            summary.scans += 1;
-            if ack.applied {
-                summary.applied += 1;
-            } else {
-                summary.duplicates += 1;
-            }
-            summary.version = ack.version;
-            index += 1;
-        }
-        Ok(Response::new(summary))
+        super::grpc_ops::insert_scans(self, request.into_inner()).await.map(Response::new)
     }
 
     async fn query_points(
@@ -568,6 +566,7 @@ impl pb::map_service_server::MapService for MapGrpc {
             }
             points.push(p.map(f64::from));
         }
+        snap.check_points(&points).map_err(service_err)?;
         let limit = self.config.max_message_bytes;
         let answer = compute(points.len() > INLINE_POINTS, move || {
             let out = query_points_answer(&snap, &points, &th)?;
@@ -591,6 +590,7 @@ impl pb::map_service_server::MapService for MapGrpc {
             bad("QueryBoxRequest.coarsen", format!("must be at most 10, got {}", req.coarsen))
         })?;
         let q = BoxQuery { min_world, max_world, state, coarsen };
+        snap.check_box(min_world, max_world).map_err(service_err)?;
         let (max_cells, limit, counts_only) =
             (self.config.max_box_cells, self.config.max_message_bytes, req.counts_only);
         let answer = compute(true, move || {
@@ -643,7 +643,10 @@ impl pb::map_service_server::MapService for MapGrpc {
             let min = vec3(&req.min, "ExportRequest.min")?;
             let max = vec3(&req.max, "ExportRequest.max")?;
             match (CellKey::from_point(min, res), CellKey::from_point(max, res)) {
-                (Some(lo), Some(hi)) if lo.x <= hi.x && lo.y <= hi.y && lo.z <= hi.z => Some((lo, hi)),
+                (Some(lo), Some(hi)) if lo.x <= hi.x && lo.y <= hi.y && lo.z <= hi.z => {
+                    snap.check_cells(lo, hi).map_err(service_err)?;
+                    Some((lo, hi))
+                }
                 _ => {
                     return Err(bad(
                         "ExportRequest.min",
@@ -652,9 +655,33 @@ impl pb::map_service_server::MapService for MapGrpc {
                 }
             }
         };
+        if bounds.is_none() {
+            snap.check_whole().map_err(service_err)?;
+        }
         let (tx, rx) = tokio::sync::mpsc::channel(4);
         tokio::task::spawn_blocking(move || export_cells(&snap, bounds, &th, &tx));
         Ok(Response::new(ExportChunks(rx)))
+    }
+
+    async fn merge_map(
+        &self,
+        request: Request<pb::MergeMapRequest>,
+    ) -> Result<Response<pb::MapChange>, Status> {
+        super::grpc_ops::merge_map(&self.service, request.into_inner()).await.map(Response::new)
+    }
+
+    async fn retract_scans(
+        &self,
+        request: Request<pb::RetractScansRequest>,
+    ) -> Result<Response<pb::MapChange>, Status> {
+        super::grpc_ops::retract_scans(&self.service, request.into_inner()).await.map(Response::new)
+    }
+
+    async fn repose_scans(
+        &self,
+        request: Request<pb::ReposeScansRequest>,
+    ) -> Result<Response<pb::MapChange>, Status> {
+        super::grpc_ops::repose_scans(&self.service, request.into_inner()).await.map(Response::new)
     }
 
     type WatchUpdatesStream = super::watch::UpdateStream;

@@ -12,7 +12,9 @@
 //! (the finest level wanted, 0–10, default 0: cubes of 2^S cells with summed evidence; raised
 //! until the box fits the server's box limit), `state=free|occupied|unknown` with
 //! `p_free`, `p_occ`, `var_max` (default: every cell with evidence), and `since=N`: only the
-//! cells of blocks changed after version N (coarsen at most 3, so cubes never straddle blocks).
+//! cells of blocks changed after version N (coarsen at most 3, so cubes never straddle blocks;
+//! `410 Gone` when N predates the version the server opened the map at, whose block history it
+//! does not keep: the client reloads the whole map).
 //!
 //! The answer, all little-endian, sections back to back (each 4- or 8-byte aligned):
 //!
@@ -143,6 +145,12 @@ impl CellsQuery {
                 return Err(ApiError::bad(format!(
                     "since: {n} is ahead of the map's version {}",
                     snap.version
+                )));
+            }
+            if n < snap.history_from {
+                return Err(ApiError::gone(format!(
+                    "since: changes before version {} are not known (the map was opened at that version); load the whole map",
+                    snap.history_from
                 )));
             }
             if u32::from(coarsen) > BLOCK_SHIFT {

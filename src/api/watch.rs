@@ -3,15 +3,18 @@
 //! [`MapService::watch`].
 //!
 //! Each stream starts with the catch-up (the blocks changed since the version asked for; none
-//! when none was asked), then one message per applied scan. A watcher that falls behind the
-//! service's bounded feed gets one `resync` message listing every block changed since the
-//! last version it was sent. When the server shuts down the gRPC stream ends with
-//! `UNAVAILABLE` and the SSE stream closes (browsers reconnect with `Last-Event-ID`, which is
-//! the last version they saw, so they resume exactly).
+//! when none was asked), then one message per change of the map (a batch of integrated scans,
+//! a merge, a retraction, a re-pose). A watcher that falls behind the service's bounded feed
+//! gets one `resync` message listing every block changed since the last version it was sent.
+//! When the server shuts down the gRPC stream ends with `UNAVAILABLE` and the SSE stream closes
+//! (browsers reconnect with `Last-Event-ID`, which is the last version they saw, so they resume
+//! exactly; after a restart a version from before it gets a catch-up with `reset`: every block
+//! the map holds, drop the rest).
 //!
 //! SSE messages are JSON: `{"kind": "catch_up"|"live"|"resync", "from_version", "version",
 //! "blocks": [[x, y, z], …], "block_edge", "resolution", "poses": [{"version", "source",
-//! "seq", "translation": [x, y, z], "rotation": [w, x, y, z]}, …]}`; the event id is `version`.
+//! "seq", "translation": [x, y, z], "rotation": [w, x, y, z]}, …], "reset"}`; the event id is
+//! `version`.
 
 use super::grpc::{bad, vec3};
 use super::http::ApiError;
@@ -87,8 +90,8 @@ impl tokio_stream::Stream for UpdateStream {
     }
 }
 
-fn pose_to_pb(p: &ScanPose) -> pb::ScanPose {
-    pb::ScanPose {
+fn pose_to_pb(p: &ScanPose) -> pb::SensorPose {
+    pb::SensorPose {
         version: p.version,
         source: p.source.clone(),
         seq: p.seq,
@@ -113,6 +116,7 @@ fn update_to_pb(u: &MapUpdate, resolution: f64) -> pb::MapUpdate {
         block_edge: BLOCK_EDGE.unsigned_abs(),
         resolution,
         poses: u.poses.iter().map(pose_to_pb).collect(),
+        reset: u.reset,
     }
 }
 
@@ -149,7 +153,7 @@ fn update_json(u: &MapUpdate, resolution: f64) -> Value {
     let poses: Vec<Value> = u.poses.iter().map(pose_json).collect();
     let blocks: Vec<[i32; 3]> = u.blocks.iter().map(|k| [k.x, k.y, k.z]).collect();
     json!({"kind": kind, "from_version": u.from_version, "version": u.version, "blocks": blocks,
-           "block_edge": BLOCK_EDGE, "resolution": resolution, "poses": poses})
+           "block_edge": BLOCK_EDGE, "resolution": resolution, "poses": poses, "reset": u.reset})
 }
 
 /// A pose as JSON (shared with the viewer's `poses` endpoint).

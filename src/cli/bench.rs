@@ -16,6 +16,12 @@ pub enum BenchCommand {
     /// The map server in-process on loopback: ingest, gRPC / HTTP query throughput and latency.
     #[cfg(feature = "server")]
     Server(super::bench_server::ServerBenchArgs),
+    /// Durable maps: ingest acknowledged after fsync, restart time and memory of a large map,
+    /// exact merge of two.
+    #[cfg(feature = "server")]
+    Durable(super::bench_durable::DurableBenchArgs),
+    /// Opens a data directory as a restarting server does: time and memory.
+    Restart(super::bench_maps::RestartArgs),
 }
 
 #[derive(Debug, Args)]
@@ -46,6 +52,9 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
         BenchCommand::Ingest(a) => ingest(a),
         #[cfg(feature = "server")]
         BenchCommand::Server(a) => super::bench_server::run(a),
+        #[cfg(feature = "server")]
+        BenchCommand::Durable(a) => super::bench_durable::run(a),
+        BenchCommand::Restart(a) => super::bench_maps::run_restart(a),
     }
 }
 

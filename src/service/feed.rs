@@ -1,9 +1,10 @@
 //! The change feed of a map: which blocks changed at which version, for caches kept elsewhere
 //! (a planner's local copy of a region, the web viewer, zenoh subscribers).
 //!
-//! Every applied scan moves the map version up by one and produces one [`MapUpdate`]: the new
-//! version, the sorted keys of the blocks whose evidence changed, and the scan's sensor pose.
-//! There are two ways to follow the map:
+//! Every published change of the map — a batch of integrated scans (the version moves up by one
+//! per scan), a merge, a retraction or a re-pose (one each) — produces one [`MapUpdate`]: the
+//! versions it spans, the sorted keys of the blocks whose evidence changed, and the sensor poses
+//! of the scans it integrated. There are two ways to follow the map:
 //! - **From the snapshot** ([`MapService::changes_since`]). Every snapshot carries, per block,
 //!   the version at which that block last changed ([`BlockVersions`], which also keeps blocks
 //!   that lost all evidence), so "the blocks changed since version N" is answered for any N
@@ -18,15 +19,18 @@
 //! Waiting is runtime-neutral: [`Subscription::poll_next`] takes a `std::task::Context` (any
 //! async runtime), [`Subscription::next_timeout`] blocks a thread.
 //!
-//! The per-block history is not stored in the map file: after a restart every stored block
-//! counts as changed at the loaded version, so a `since` older than that answers every block
-//! (a superset, which is what a cache needs to be correct).
+//! The per-block history is not stored in the map file: after a restart (versions resume from
+//! the file) every stored block counts as changed at the version the map was opened at
+//! ([`Snapshot::history_from`]). Blocks removed before the restart are not known any more, so a
+//! `since` older than that is answered with every block the map holds and
+//! [`MapUpdate::reset`] set: the cache must drop every block not listed. A subscriber never
+//! silently misses a block.
 
-use super::{MapService, ServiceError, Snapshot};
+use super::{MapService, ServiceError, Shared, Snapshot};
 use crate::core::{BlockKey, CellKey, Pose};
 use rustc_hash::FxHashMap;
 use std::collections::{BTreeMap, VecDeque};
-use std::sync::{Arc, Condvar, Mutex, PoisonError, RwLock};
+use std::sync::{Arc, Condvar, Mutex, PoisonError};
 use std::task::{Context, Poll, Waker};
 use std::time::{Duration, Instant};
 
@@ -49,7 +53,7 @@ pub struct ScanPose {
 pub enum UpdateKind {
     /// The first answer of a watch: every block changed since the version asked for.
     CatchUp,
-    /// One applied scan.
+    /// One published change (a batch of scans, a merge, a retraction, a re-pose).
     Live,
     /// The subscriber fell behind the feed; every block changed since its last version.
     Resync,
@@ -66,6 +70,10 @@ pub struct MapUpdate {
     /// Sensor poses of the scans in `(from_version, version]` that the feed still holds (all of
     /// them for live updates; the most recent ones for catch-ups), in version order.
     pub poses: Vec<ScanPose>,
+    /// `from_version` predates the server's knowledge of the map's history (it was opened at a
+    /// later version): `blocks` lists every block the map holds (inside the filter) and a cache
+    /// must drop every block it holds that is not listed.
+    pub reset: bool,
 }
 
 /// An inclusive range of block keys (a box filter).
@@ -96,9 +104,10 @@ impl BlockBox {
     }
 }
 
-/// The ring of recent updates of one map, shared by its writer and its subscribers.
+/// The ring of recent updates of one map, shared (in [`Shared`]) by its writer and its
+/// subscribers.
 #[derive(Debug)]
-pub(super) struct Feed {
+pub(crate) struct Feed {
     state: Mutex<FeedState>,
     published: Condvar,
     capacity: usize,
@@ -106,7 +115,8 @@ pub(super) struct Feed {
 
 #[derive(Debug, Default)]
 struct FeedState {
-    /// Consecutive versions, oldest first.
+    /// Consecutive updates, oldest first: each one's `from_version` is the previous one's
+    /// `version`.
     ring: VecDeque<Arc<MapUpdate>>,
     closed: bool,
     next_id: u64,
@@ -123,8 +133,8 @@ impl Feed {
         self.state.lock().unwrap_or_else(PoisonError::into_inner)
     }
 
-    /// Appends the update of one applied scan (called by the writer after the snapshot that
-    /// holds it is published) and wakes every waiting subscriber.
+    /// Appends an update (called by the writer after the snapshot that holds it is published)
+    /// and wakes every waiting subscriber.
     pub fn publish(&self, update: MapUpdate) {
         let wakers = {
             let mut st = self.lock();
@@ -154,8 +164,9 @@ impl Feed {
         let st = self.lock();
         st.ring
             .iter()
-            .filter(|u| u.version > after && u.version <= up_to)
-            .flat_map(|u| u.poses.iter().cloned())
+            .flat_map(|u| u.poses.iter())
+            .filter(|p| p.version > after && p.version <= up_to)
+            .cloned()
             .collect()
     }
 }
@@ -182,7 +193,8 @@ fn changes_in(
         .collect();
     blocks.sort_unstable();
     let poses = feed.poses(since, snap.version);
-    Ok(MapUpdate { kind, from_version: since, version: snap.version, blocks, poses })
+    let reset = since < snap.history_from;
+    Ok(MapUpdate { kind, from_version: since, version: snap.version, blocks, poses, reset })
 }
 
 /// What [`Subscription::poll_next`] yields.
@@ -196,8 +208,7 @@ pub enum Next {
 /// A live view of one map's changes; see the module docs.
 #[derive(Debug)]
 pub struct Subscription {
-    feed: Arc<Feed>,
-    snapshot: Arc<RwLock<Arc<Snapshot>>>,
+    shared: Arc<Shared>,
     id: u64,
     /// The version this subscriber is up to date with.
     seen: u64,
@@ -219,18 +230,15 @@ impl Subscription {
 
     /// Looks at the ring once; registers `waker` when there is nothing new.
     fn step(&mut self, waker: Option<&Waker>) -> Step {
-        let mut st = self.feed.lock();
-        let want = self.seen + 1;
+        let mut st = self.shared.feed.lock();
         if let Some(first) = st.ring.front()
-            && first.version > want
+            && first.from_version > self.seen
         {
             return Step::Lagged;
         }
-        let found = st.ring.front().and_then(|first| {
-            let i = usize::try_from(want.checked_sub(first.version)?).ok()?;
-            st.ring.get(i).cloned()
-        });
-        match found {
+        // The first update past `seen` (updates are in version order).
+        let i = st.ring.partition_point(|u| u.version <= self.seen);
+        match st.ring.get(i).cloned() {
             Some(u) => Step::Ready(u),
             None if st.closed => Step::Closed,
             None => {
@@ -250,11 +258,11 @@ impl Subscription {
                 Some(Next::Update(self.filtered(u)))
             }
             Step::Lagged => {
-                let snap = self.snapshot.read().unwrap_or_else(PoisonError::into_inner).clone();
+                let snap = self.shared.snapshot();
                 // `seen` never passes the snapshot (it is published before the feed), so this
                 // only fails if that invariant broke: end the subscription rather than guess.
                 let Ok(update) =
-                    changes_in(&self.feed, &snap, self.seen, self.filter.as_ref(), UpdateKind::Resync)
+                    changes_in(&self.shared.feed, &snap, self.seen, self.filter.as_ref(), UpdateKind::Resync)
                 else {
                     return Some(Next::Closed);
                 };
@@ -275,6 +283,7 @@ impl Subscription {
                 version: u.version,
                 blocks: u.blocks.iter().copied().filter(|k| f.contains(*k)).collect(),
                 poses: u.poses.clone(),
+                reset: u.reset,
             }),
         }
     }
@@ -294,11 +303,12 @@ impl Subscription {
                 return Some(next);
             }
             let left = deadline.checked_duration_since(Instant::now()).filter(|d| !d.is_zero())?;
-            let st = self.feed.lock();
+            let feed = &self.shared.feed;
+            let st = feed.lock();
             // Re-check under the lock before sleeping, so a publish in between is not missed.
             let behind = st.ring.back().is_some_and(|u| u.version > self.seen);
             if !behind && !st.closed {
-                drop(self.feed.published.wait_timeout(st, left).unwrap_or_else(PoisonError::into_inner));
+                drop(feed.published.wait_timeout(st, left).unwrap_or_else(PoisonError::into_inner));
             }
         }
     }
@@ -306,7 +316,7 @@ impl Subscription {
 
 impl Drop for Subscription {
     fn drop(&mut self) {
-        self.feed.lock().wakers.remove(&self.id);
+        self.shared.feed.lock().wakers.remove(&self.id);
     }
 }
 
@@ -320,8 +330,7 @@ impl MapService {
         filter: Option<&BlockBox>,
     ) -> Result<MapUpdate, ServiceError> {
         let h = self.handle(map)?;
-        let snap = h.snapshot.read().unwrap_or_else(PoisonError::into_inner).clone();
-        changes_in(&h.feed, &snap, since, filter, UpdateKind::CatchUp)
+        changes_in(&h.shared.feed, &h.shared.snapshot(), since, filter, UpdateKind::CatchUp)
     }
 
     /// Starts following `map`: the catch-up since `since` (the current version when `None`:
@@ -333,28 +342,27 @@ impl MapService {
         filter: Option<BlockBox>,
     ) -> Result<(MapUpdate, Subscription), ServiceError> {
         let h = self.handle(map)?;
-        let snap = h.snapshot.read().unwrap_or_else(PoisonError::into_inner).clone();
-        let catch_up =
-            changes_in(&h.feed, &snap, since.unwrap_or(snap.version), filter.as_ref(), UpdateKind::CatchUp)?;
+        let snap = h.shared.snapshot();
+        let catch_up = changes_in(
+            &h.shared.feed,
+            &snap,
+            since.unwrap_or(snap.version),
+            filter.as_ref(),
+            UpdateKind::CatchUp,
+        )?;
         let id = {
-            let mut st = h.feed.lock();
+            let mut st = h.shared.feed.lock();
             st.next_id += 1;
             st.next_id
         };
-        let sub = Subscription {
-            feed: h.feed.clone(),
-            snapshot: h.snapshot.clone(),
-            id,
-            seen: snap.version,
-            filter,
-        };
+        let sub = Subscription { shared: h.shared.clone(), id, seen: snap.version, filter };
         Ok((catch_up, sub))
     }
 
     /// The sensor poses of the most recent scans of `map` the feed holds, oldest first.
     pub fn recent_poses(&self, map: &str) -> Result<Vec<ScanPose>, ServiceError> {
         let h = self.handle(map)?;
-        Ok(h.feed.poses(0, u64::MAX))
+        Ok(h.shared.feed.poses(0, u64::MAX))
     }
 
     /// Ends every subscription of every map (transports close their streams), e.g. before a
@@ -362,7 +370,7 @@ impl MapService {
     pub fn close_feeds(&self) {
         let maps = self.maps.read().unwrap_or_else(PoisonError::into_inner);
         for h in maps.values() {
-            h.feed.close();
+            h.shared.feed.close();
         }
     }
 }

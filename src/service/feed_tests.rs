@@ -3,6 +3,7 @@
 use super::*;
 use crate::core::{BlockKey, PointFrame, Pose};
 use crate::sim::{Lidar, simulate};
+use crate::store::ScanSelector;
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::task::{Context, Poll, Wake, Waker};
@@ -20,6 +21,7 @@ fn sim_scans(n: usize) -> Vec<ScanInput> {
             frame: PointFrame::World,
             points: s.points_world,
             max_range_m: None,
+            stamp_nanos: None,
         })
         .collect()
 }
@@ -155,18 +157,120 @@ fn polling_wakes_on_publish_and_ends_on_shutdown() {
     assert!(matches!(sub.poll_next(&mut cx), Poll::Ready(Next::Closed)));
 }
 
+/// A square patch of returns around (x, y) seen from 2 m above: blocks no simulated scan touches.
+fn patch(source: &str, seq: u64, x: f32, y: f32) -> ScanInput {
+    let points = (0..400).map(|i| [x + (i % 20) as f32 * 0.05, y + (i / 20) as f32 * 0.05, 0.5]).collect();
+    ScanInput {
+        source: source.into(),
+        seq,
+        world_from_sensor: Pose::at([f64::from(x) + 0.5, f64::from(y) + 0.5, 2.5]),
+        frame: PointFrame::World,
+        points,
+        max_range_m: None,
+        stamp_nanos: None,
+    }
+}
+
+/// Follows `sub` up to `version`, checking the updates are contiguous; returns them.
+fn follow(sub: &mut Subscription, version: u64) -> Vec<Arc<MapUpdate>> {
+    let mut out: Vec<Arc<MapUpdate>> = Vec::new();
+    while sub.version() < version {
+        let from = sub.version();
+        let u = next(sub);
+        assert_eq!((u.kind, u.from_version, u.reset), (UpdateKind::Live, from, false));
+        assert!(u.version > u.from_version && u.blocks.windows(2).all(|w| w[0] < w[1]));
+        out.push(u);
+    }
+    assert_eq!(out.last().map(|u| u.version), Some(version));
+    out
+}
+
 #[test]
-fn after_a_restart_every_block_counts_as_changed_at_the_loaded_version() {
+fn batches_and_exact_operations_each_publish_the_blocks_they_changed() {
     let dir = tempfile::tempdir().unwrap();
-    {
+    let svc = service(dir.path(), 256);
+    let (_, mut sub) = svc.watch("m", Some(0), None).unwrap();
+    // Queued without waiting: the writer integrates them in batches (one update spans several
+    // versions, with one pose per scan).
+    let scans = sim_scans(8);
+    for s in &scans[..7] {
+        svc.submit(
+            "m",
+            s.clone(),
+            SubmitOptions::default(),
+            Box::new(|r| {
+                r.unwrap();
+            }),
+        )
+        .unwrap();
+    }
+    svc.insert_scan_blocking("m", scans[7].clone()).unwrap();
+    svc.insert_scan_blocking("m", patch("robot2", 1, 30.0, 30.0)).unwrap();
+    let mut updates = follow(&mut sub, 9);
+    let poses: Vec<u64> = updates.iter().flat_map(|u| u.poses.iter().map(|p| p.version)).collect();
+    assert_eq!(poses, (1..=9).collect::<Vec<_>>(), "one pose per scan, at the version it produced");
+    let patch_blocks = updates.last().unwrap().blocks.clone();
+    // Retract (the patch's blocks lose all evidence), re-pose, merge: one update each.
+    let other = MergeSource::Map("o".into());
+    svc.create_map("o", MapParams::default()).unwrap();
+    svc.insert_scan_blocking("o", patch("robot3", 1, -30.0, 30.0)).unwrap();
+    let retract = ScanSelector { source: Some("robot2".into()), ..Default::default() };
+    let moved = Pose::at([scans[0].world_from_sensor.translation_m[0] + 0.3, 1.0, 0.5]);
+    let changes = [
+        svc.retract("m", retract).unwrap(),
+        svc.repose("m", vec![(("robot1".into(), 1), moved)]).unwrap(),
+        svc.merge("m", other).unwrap(),
+    ];
+    for c in changes {
+        let u = follow(&mut sub, c.version).pop().unwrap();
+        assert_eq!((u.from_version + 1, u.blocks.len() as u64), (c.version, c.blocks_changed));
+        assert!(u.poses.is_empty());
+        updates.push(u);
+    }
+    assert_eq!(updates[updates.len() - 3].blocks, patch_blocks, "the retraction names the emptied blocks");
+    let snap = svc.snapshot("m").unwrap();
+    assert!(patch_blocks.iter().all(|k| snap.map.block(*k).is_none()));
+    // Following the feed gives every block the version the snapshot holds for it.
+    let mut cache = BTreeMap::new();
+    updates.iter().for_each(|u| apply(&mut cache, u));
+    let held: BTreeMap<BlockKey, u64> = snap.block_versions.iter().map(|(k, v)| (*k, *v)).collect();
+    assert_eq!(cache, held);
+    for since in [0, 4, 9, 10, 11] {
+        let want: Vec<BlockKey> = held.iter().filter(|(_, v)| **v > since).map(|(k, _)| *k).collect();
+        assert_eq!(svc.changes_since("m", since, None).unwrap().blocks, want, "since {since}");
+    }
+}
+
+#[test]
+fn after_a_restart_an_older_version_gets_every_block_and_a_reset() {
+    let dir = tempfile::tempdir().unwrap();
+    let (before, removed) = {
         let svc = service(dir.path(), 256);
         for s in sim_scans(2) {
             svc.insert_scan_blocking("m", s).unwrap();
         }
-    }
+        svc.insert_scan_blocking("m", patch("robot2", 1, 30.0, 30.0)).unwrap();
+        let removed = svc.changes_since("m", 2, None).unwrap().blocks;
+        svc.retract("m", ScanSelector { source: Some("robot2".into()), ..Default::default() }).unwrap();
+        let u = svc.changes_since("m", 3, None).unwrap();
+        assert_eq!((u.blocks.clone(), u.reset), (removed.clone(), false), "known history: a plain diff");
+        (3, removed)
+    };
     let svc = service(dir.path(), 256);
-    let all = svc.snapshot("m").unwrap().map.block_keys_sorted();
-    assert_eq!(svc.changes_since("m", 1, None).unwrap().blocks, all, "a superset is safe for caches");
-    assert!(svc.changes_since("m", 2, None).unwrap().blocks.is_empty());
+    let snap = svc.snapshot("m").unwrap();
+    assert_eq!((snap.version, snap.history_from), (4, 4), "versions resume from the map file");
+    let all = snap.map.block_keys_sorted();
+    // The removed blocks are not known any more: the answer says the list is the whole map.
+    let u = svc.changes_since("m", before, None).unwrap();
+    assert_eq!((u.blocks.clone(), u.reset), (all.clone(), true));
+    assert!(removed.iter().all(|k| !u.blocks.contains(k)));
+    let (first, mut sub) = svc.watch("m", Some(1), None).unwrap();
+    assert_eq!((first.kind, first.reset, first.blocks.len()), (UpdateKind::CatchUp, true, all.len()));
+    let current = svc.changes_since("m", 4, None).unwrap();
+    assert!(current.blocks.is_empty() && !current.reset);
     assert!(svc.recent_poses("m").unwrap().is_empty(), "poses are not stored in the map file");
+    svc.insert_scan_blocking("m", patch("robot2", 2, -30.0, -30.0)).unwrap();
+    let live = next(&mut sub);
+    assert_eq!((live.from_version, live.version, live.reset), (4, 5, false));
+    assert_eq!(svc.changes_since("m", 4, None).unwrap().blocks, live.blocks);
 }

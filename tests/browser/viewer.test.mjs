@@ -193,7 +193,7 @@ describe('the viewer on the demo map', () => {
     const patchMax = [c[0] + 0.7, c[1] + 0.7, z + 0.3];
     assert.equal(await page.evaluate(([a, b]) => window.__viewer.occupiedWithin(a, b), [patchMin, patchMax]), 0);
     const sent = performance.now();
-    const ack = await postJson('/v1/maps/demo/scans', {
+    const ack = await postJson('/v1/maps/demo/scans?wait_applied=true', {
       source: 'browser-test', seq: 1, pose: { translation: [c[0], c[1], z + 2], rotation: [1, 0, 0, 0] }, points,
     });
     assert.equal(ack.version, v0.version + 1);

@@ -29,6 +29,7 @@ export class MapModel {
     this.poses = [];
     this.syncing = false;
     this.dirty = false;
+    this.stale = false; // set by a `reset` update: reload instead of patching
     this.lastOverview = 0;
     this.source = null;
     this.updates = 0;
@@ -82,7 +83,9 @@ export class MapModel {
     this.updates += 1;
     this.lastUpdateAt = performance.now();
     if (update.poses.length) this.poses = this.poses.concat(update.poses).slice(-MAX_POSES);
-    if (update.version > this.store.version) this.sync();
+    // The server restarted since the version held: it cannot say which blocks went away.
+    if (update.reset) this.stale = true;
+    if (update.reset || update.version > this.store.version) this.sync();
     else this.onChange();
   }
 
@@ -107,6 +110,26 @@ export class MapModel {
   }
 
   async syncOnce() {
+    try {
+      if (this.stale) await this.reload();
+      else await this.patch();
+    } catch (e) {
+      // 410: changes since our version are not known (the server restarted): reload.
+      if (e.status !== 410) throw e;
+      await this.reload();
+    }
+  }
+
+  // Replaces everything held with the server's current cells.
+  async reload() {
+    this.stale = false;
+    this.store.replaceAll(await fetchCells(this.name, this.large ? { coarsen: OVERVIEW_COARSEN } : {}));
+    this.lastOverview = performance.now();
+    if (this.detail) this.detail.replaceAll(await fetchCells(this.name, this.detailBox));
+  }
+
+  // Fetches the cells of the blocks changed since the version held.
+  async patch() {
     const since = this.store.version;
     if (!this.large || this.store.coarsen <= 3) {
       this.store.applyChanges(await fetchCells(this.name, { since, coarsen: this.store.coarsen }));
