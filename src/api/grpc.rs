@@ -117,7 +117,7 @@ pub(super) fn service_err(e: ServiceError) -> Status {
 }
 
 /// Exactly three values (x, y, z).
-fn vec3(v: &[f64], field: &str) -> Result<[f64; 3], Status> {
+pub(super) fn vec3(v: &[f64], field: &str) -> Result<[f64; 3], Status> {
     <[f64; 3]>::try_from(v).map_err(|_| bad(field, format!("expected 3 values (x, y, z), got {}", v.len())))
 }
 
@@ -682,6 +682,15 @@ impl pb::map_service_server::MapService for MapGrpc {
         request: Request<pb::ReposeScansRequest>,
     ) -> Result<Response<pb::MapChange>, Status> {
         super::grpc_ops::repose_scans(&self.service, request.into_inner()).await.map(Response::new)
+    }
+
+    type WatchUpdatesStream = super::watch::UpdateStream;
+
+    async fn watch_updates(
+        &self,
+        request: Request<pb::WatchUpdatesRequest>,
+    ) -> Result<Response<super::watch::UpdateStream>, Status> {
+        Ok(Response::new(super::watch::watch_updates(&self.service, request.into_inner())?))
     }
 }
 

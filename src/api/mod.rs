@@ -19,6 +19,8 @@ mod grpc_ops;
 pub mod http;
 mod http_ops;
 pub mod status;
+pub mod viewer;
+pub mod watch;
 
 impl pb::Scan {
     /// A world-frame scan seen from `origin_world` (identity rotation), points packed as
