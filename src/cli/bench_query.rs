@@ -18,8 +18,8 @@ use std::time::{Duration, Instant};
 
 #[derive(Debug, Args)]
 pub struct QueryBenchArgs {
-    /// Scans of the outdoor drive that build the map.
-    #[arg(long, default_value_t = 12)]
+    /// Scans of the outdoor drive that build the map (4 give about 6M cells with evidence).
+    #[arg(long, default_value_t = 4)]
     pub scans: usize,
     /// Points per batched point query.
     #[arg(long, default_value_t = 100_000)]
