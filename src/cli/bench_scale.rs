@@ -9,13 +9,13 @@
 //! cell data is shared, so its RAM is not. Queries are timed on the same maps (points uniform
 //! over all blocks, 8 m rays from the route).
 //!
-//! Memory: RAM per cell is the resident-memory growth of a deep copy of a real map (blocks,
-//! their `Arc` headers, the hash table, allocator overhead) divided by its cells; disk per
-//! cell is the size of the saved map file. "Allocated cells" are all 512 cells of each
+//! Memory: RAM per cell is the map's own layout — per block the evidence, the `Arc` counters
+//! and a hash-table slot at its lowest load (1/2) — divided by its cells (resident-set deltas
+//! proved too noisy to attribute); disk per cell is the size of the saved map file. "Allocated cells" are all 512 cells of each
 //! allocated block; "cells with evidence" those holding any.
 
 use super::bench::percentile;
-use super::bench_maps::{Cleanup, memory_kb};
+use super::bench_maps::Cleanup;
 use super::bench_world::{RaySpec, build_map, outdoor_params, outdoor_scans, random_direction};
 use crate::core::evidence::BlockEvidence;
 use crate::core::key::BLOCK_CELLS;
@@ -162,16 +162,11 @@ fn query_rates(map: &EvidenceMap, room: &[SimScan]) -> (f64, f64) {
 
 /// RAM and disk bytes per cell of `map` (see the module docs).
 fn memory_of(map: &EvidenceMap) -> Result<Value> {
-    let (rss0, _) = memory_kb();
-    let mut copy = EvidenceMap::new(*map.params());
-    for (k, b) in map.blocks_unsorted() {
-        let mut owned = BlockEvidence::zeroed();
-        owned.add_scaled(b, 1);
-        copy.insert_block(*k, owned);
-    }
-    let (rss1, _) = memory_kb();
-    let ram = (rss1.saturating_sub(rss0) * 1024) as f64;
-    drop(copy);
+    // Per block: the evidence, the Arc's two counters, and a hash-table slot (key + pointer
+    // + one control byte) at hashbrown's worst load factor of 7/8 just after growing (1/2).
+    let slot = std::mem::size_of::<(BlockKey, std::sync::Arc<BlockEvidence>)>() + 1;
+    let per_block = std::mem::size_of::<BlockEvidence>() + 2 * std::mem::size_of::<usize>() + 2 * slot;
+    let ram = (map.block_count() * per_block) as f64;
     let dir = std::env::temp_dir().join(format!("bgkmap-bench-scale-{}", std::process::id()));
     std::fs::create_dir_all(&dir)?;
     let _cleanup = Cleanup(dir.clone());
