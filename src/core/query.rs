@@ -33,7 +33,7 @@ const POINT_BATCH: usize = 32;
 
 /// [`query_points`] without the answer vector: `f` gets each point's answer, in order.
 ///
-/// Points are processed in rounds of [`POINT_BATCH`]: keys, then block lookups, then the
+/// Points are processed in rounds of 32: keys, then block lookups, then the
 /// estimates. A cell without evidence answers the prior estimate computed once (the same bits
 /// as [`CellEstimate::from_evidence`] of zero evidence).
 pub fn for_each_point(
