@@ -165,8 +165,9 @@ mod tests {
         assert_eq!(a, b);
         assert!(scene.solids.len() > 20, "{} solids", scene.solids.len());
         for s in &a {
-            // Every downward beam hits the road within 30 m; most others hit something too.
-            assert!(s.points_world.len() > lidar.rays_per_scan() * 3 / 4, "{} points", s.points_world.len());
+            // Beams below −3.5° reach the ground within 30 m (79% of them) where there is
+            // ground: on the town's outer streets half the view is beyond its edge.
+            assert!(s.points_world.len() > lidar.rays_per_scan() / 2, "{} points", s.points_world.len());
             assert!(!scene.is_occupied(s.origin), "pose {:?} inside a solid", s.origin);
             for p in &s.points_world {
                 let d = p.iter().zip(&s.origin).map(|(a, b)| (f64::from(*a) - b).powi(2)).sum::<f64>();
