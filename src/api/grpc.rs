@@ -26,7 +26,9 @@ use super::pb;
 use super::pb::map_service_server::MapServiceServer;
 use super::status::to_grpc;
 use crate::core::key::BLOCK_CELLS;
-use crate::core::query::{BoxError, BoxQuery, RayHit, StopAt, cast_ray, count_box, query_box, query_points};
+use crate::core::query::{
+    BoxError, BoxQuery, RayHit, StopAt, cast_ray, count_box, for_each_point, query_box,
+};
 use crate::core::{CellKey, CellState, MapParams, PointFrame, Pose, RangeMode, Thresholds};
 use crate::service::{Ack, MapInfo, MapService, ScanInput, ServiceError, Snapshot, SubmitOptions};
 use std::pin::Pin;
@@ -340,8 +342,7 @@ fn query_points_answer(
     points: &[[f64; 3]],
     th: &Thresholds,
 ) -> Result<pb::QueryPointsResponse, Status> {
-    let answers = query_points(&snap.map, points, th);
-    let n = answers.len();
+    let n = points.len();
     let mut out = pb::QueryPointsResponse {
         probability: Vec::with_capacity(n),
         variance: Vec::with_capacity(n),
@@ -349,14 +350,20 @@ fn query_points_answer(
         cell: Vec::with_capacity(3 * n),
         version: snap.version,
     };
-    for (i, a) in answers.into_iter().enumerate() {
-        let a = a.ok_or_else(|| {
-            bad("QueryPointsRequest.xyz_f32", format!("point {i} is outside the map's key range"))
-        })?;
-        out.probability.push(a.estimate.probability);
-        out.variance.push(a.estimate.variance);
-        out.state.push(cell_state_to_pb(a.estimate.state));
-        push_key(&mut out.cell, a.cell);
+    let mut outside = None;
+    for_each_point(&snap.map, points, th, |a| match a {
+        Some(a) => {
+            out.probability.push(a.estimate.probability);
+            out.variance.push(a.estimate.variance);
+            out.state.push(cell_state_to_pb(a.estimate.state));
+            push_key(&mut out.cell, a.cell);
+        }
+        None => {
+            outside.get_or_insert(out.probability.len());
+        }
+    });
+    if let Some(i) = outside {
+        return Err(bad("QueryPointsRequest.xyz_f32", format!("point {i} is outside the map's key range")));
     }
     Ok(out)
 }

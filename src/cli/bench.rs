@@ -20,7 +20,17 @@ pub enum BenchCommand {
     /// exact merge of two.
     #[cfg(feature = "server")]
     Durable(super::bench_durable::DurableBenchArgs),
-    /// Opens a data directory as a restarting server does: time and memory.
+    /// Queries on a map of over a million cells (a simulated 64-beam drive): in-process, gRPC
+    /// and HTTP — batched points, single-point latency (gRPC also while ingesting), boxes, rays.
+    #[cfg(feature = "server")]
+    Query(super::bench_query::QueryBenchArgs),
+    /// Ingest and query time as the map grows from 10³ to 10⁶ blocks; memory per cell in RAM
+    /// and on disk.
+    Scale(super::bench_scale::ScaleArgs),
+    /// Exact offline merge of two large maps (half their blocks overlap).
+    Merge(super::bench_maps::MergeArgs),
+    /// Opens a data directory as a restarting server does (a large generated map unless
+    /// `--data-dir` is given): time and memory, in a fresh process.
     Restart(super::bench_maps::RestartArgs),
 }
 
@@ -28,15 +38,19 @@ pub enum BenchCommand {
 pub struct IngestArgs {
     /// PCD scans (default: 12 scans of the built-in simulated room).
     pub scans: Vec<PathBuf>,
+    /// Instead: this many scans of a simulated dense 64-beam LiDAR (~130k points, 30 m) driving
+    /// through a town; `--max-range` then defaults to the LiDAR's 30 m.
+    #[arg(long, conflicts_with = "scans")]
+    pub lidar64: Option<usize>,
     /// Timed passes over all scans (after one untimed warm-up pass), each into a fresh map.
     #[arg(long, default_value_t = 5)]
     pub repeat: usize,
     /// Threads per scan.
     #[arg(long, default_value_t = 1)]
     pub threads: usize,
-    /// Maximum range (m); 0 = unlimited.
-    #[arg(long, default_value_t = 8.0)]
-    pub max_range: f64,
+    /// Maximum range (m); 0 = unlimited. Default 8 (30 with `--lidar64`).
+    #[arg(long)]
+    pub max_range: Option<f64>,
     /// Hits beyond max range: `truncate` (default) or `drop` (la3dm's work, for comparison).
     #[arg(long, default_value = "truncate")]
     pub range_mode: crate::core::RangeMode,
@@ -54,12 +68,19 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
         BenchCommand::Server(a) => super::bench_server::run(a),
         #[cfg(feature = "server")]
         BenchCommand::Durable(a) => super::bench_durable::run(a),
+        #[cfg(feature = "server")]
+        BenchCommand::Query(a) => super::bench_query::run(a),
+        BenchCommand::Scale(a) => super::bench_scale::run(a),
+        BenchCommand::Merge(a) => super::bench_maps::run_merge(a),
         BenchCommand::Restart(a) => super::bench_maps::run_restart(a),
     }
 }
 
 fn ingest(a: IngestArgs) -> Result<()> {
-    let (scans, source) = if a.scans.is_empty() {
+    let (scans, source) = if let Some(n) = a.lidar64 {
+        let scans = super::bench_world::as_scans(super::bench_world::outdoor_scans(n.max(1)));
+        (scans, format!("simulated 64-beam LiDAR drive (seed 0, {} scans, town of 4×4 blocks)", n.max(1)))
+    } else if a.scans.is_empty() {
         let (_, sim) = simulate(0, 12, &Lidar::default());
         let scans = sim
             .into_iter()
@@ -70,7 +91,8 @@ fn ingest(a: IngestArgs) -> Result<()> {
         let scans = a.scans.iter().map(|p| load_scan(p, &a.scan)).collect::<Result<Vec<_>>>()?;
         (scans, format!("{} PCD files", a.scans.len()))
     };
-    let params = MapParams { max_range_m: a.max_range, range_mode: a.range_mode, ..Default::default() };
+    let max_range = a.max_range.unwrap_or(if a.lidar64.is_some() { 30.0 } else { 8.0 });
+    let params = MapParams { max_range_m: max_range, range_mode: a.range_mode, ..Default::default() };
     params.validate()?;
     let threads = a.threads.max(1);
     let mut integrator = Integrator::new(params);
@@ -118,7 +140,7 @@ fn ingest(a: IngestArgs) -> Result<()> {
     if a.json {
         let v = serde_json::json!({
             "bench": "ingest", "source": source, "scans": scans.len(), "repeat": a.repeat.max(1),
-            "threads": threads, "max_range": a.max_range,
+            "threads": threads, "max_range": max_range,
             "per_scan_ms_median": med, "per_scan_ms_p90": p90, "total_ms_median": total_med,
             "raw_points": points, "points_per_s": points_per_s,
             "range_mode": params.range_mode.as_str(),

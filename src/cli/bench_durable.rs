@@ -11,7 +11,7 @@
 //! The data directory is created under `--dir` (default: the current directory, so fsync hits
 //! the real disk, not a tmpfs) and removed afterwards. Measured figures only; nothing asserts.
 
-use super::bench_maps::{merge, restart_in_child, scans_of, write_maps};
+use super::bench_maps::{Cleanup, merge, restart_in_child, scans_of, write_maps};
 use super::serve::{ServerConfig, runtime, start};
 use crate::api::pb;
 use crate::core::RawScan;
@@ -112,15 +112,6 @@ async fn ingest(addr: SocketAddr, scans: &[RawScan]) -> Result<Value> {
     Ok(json!({"unary": {"acked_per_s": unary.0, "applied_per_s": unary.1},
               "stream": {"acked_per_s": stream.0, "applied_per_s": stream.1},
               "four_streams": {"acked_per_s": fleet.0, "applied_per_s": fleet.1}}))
-}
-
-/// Removes the bench directory on the way out.
-struct Cleanup(PathBuf);
-
-impl Drop for Cleanup {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
 }
 
 pub fn run(a: DurableBenchArgs) -> Result<()> {

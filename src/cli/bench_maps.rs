@@ -13,14 +13,82 @@ use serde_json::{Value, json};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+/// The large maps `bench restart` and `bench merge` generate.
 #[derive(Debug, Args)]
-pub struct RestartArgs {
-    /// Data directory to open as `bgkmap serve` does (every map file, journals replayed).
-    #[arg(long)]
-    pub data_dir: PathBuf,
+pub struct LargeMapArgs {
+    /// Blocks per generated map.
+    #[arg(long, default_value_t = 100_000)]
+    pub blocks: usize,
+    /// Raw scans journaled in each generated map.
+    #[arg(long, default_value_t = 1000)]
+    pub journal_scans: usize,
+    /// Points per journaled scan.
+    #[arg(long, default_value_t = 3500)]
+    pub points: usize,
+    /// Where to create the (temporary) directory of generated maps.
+    #[arg(long, default_value = ".")]
+    pub dir: PathBuf,
     /// Print one JSON object.
     #[arg(long)]
     pub json: bool,
+}
+
+#[derive(Debug, Args)]
+pub struct RestartArgs {
+    /// Data directory to open as `bgkmap serve` does (every map file, journals replayed), in
+    /// this process. Without it, a large map is generated and opened in a fresh process.
+    #[arg(long)]
+    pub data_dir: Option<PathBuf>,
+    #[command(flatten)]
+    pub large: LargeMapArgs,
+}
+
+#[derive(Debug, Args)]
+pub struct MergeArgs {
+    #[command(flatten)]
+    pub large: LargeMapArgs,
+}
+
+/// Removes a generated directory on the way out.
+pub(super) struct Cleanup(pub(super) PathBuf);
+
+impl Drop for Cleanup {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+fn generated_dir(a: &LargeMapArgs, what: &str) -> Result<(PathBuf, Cleanup)> {
+    ensure!(a.blocks > 0 && a.points > 0, "--blocks and --points must be > 0");
+    let root = a.dir.join(format!("bgkmap-bench-{what}-{}", std::process::id()));
+    std::fs::create_dir_all(root.join("maps"))
+        .with_context(|| format!("{}: cannot create", root.display()))?;
+    Ok((root.clone(), Cleanup(root)))
+}
+
+/// `bench merge`: generates two large maps and merges them as `bgkmap merge` does.
+pub fn run_merge(a: MergeArgs) -> Result<()> {
+    let a = a.large;
+    let (root, _cleanup) = generated_dir(&a, "merge")?;
+    let (pa, pb) = (root.join("a.bgkmap"), root.join("b.bgkmap"));
+    let write_s = write_maps(&pa, &pb, a.blocks, a.journal_scans, a.points)?;
+    let (merge_s, blocks) = merge(&pa, &pb, &root.join("merged.bgkmap"))?;
+    let bytes = std::fs::metadata(root.join("merged.bgkmap")).map(|m| m.len()).unwrap_or(0);
+    let v = json!({"bench": "merge", "map_blocks": a.blocks, "journal_scans_per_map": a.journal_scans,
+                   "points_per_scan": a.points, "write_maps_s": write_s, "merge_s": merge_s,
+                   "merged_blocks": blocks, "merged_file_mb": bytes as f64 / 1e6});
+    if a.json {
+        println!("{v}");
+    } else {
+        println!(
+            "merge: two maps of {} blocks with {} journaled scans each (half the blocks overlap): exact merge \
+             {merge_s:.2} s → {blocks} blocks, {:.0} MB file (maps written in {write_s:.1} s)",
+            a.blocks,
+            a.journal_scans,
+            bytes as f64 / 1e6
+        );
+    }
+    Ok(())
 }
 
 /// Resident and peak memory of this process (kB), from `/proc/self/status`.
@@ -35,11 +103,34 @@ pub(super) fn memory_kb() -> (u64, u64) {
     (field("VmRSS:"), field("VmHWM:"))
 }
 
-/// Opens a data directory like a restarting server and reports time and memory.
+/// Opens a data directory like a restarting server and reports time and memory; without
+/// `--data-dir`, generates a large map and does that in a fresh process.
 pub fn run_restart(a: RestartArgs) -> Result<()> {
+    let Some(data_dir) = a.data_dir else {
+        let l = a.large;
+        let (root, _cleanup) = generated_dir(&l, "restart")?;
+        let path = root.join("maps").join("a.bgkmap");
+        write_map(&path, &base_map()?, l.blocks, 0, "robot-a", &scans_of(l.points, l.journal_scans))?;
+        let mut v = restart_in_child(&root.join("maps"))?;
+        v["file_mb"] = json!(std::fs::metadata(&path).map(|m| m.len()).unwrap_or(0) as f64 / 1e6);
+        if l.json {
+            println!("{v}");
+        } else {
+            println!(
+                "restart: a map of {} blocks with {} journaled scans ({:.0} MB file), opened in a fresh process: \
+                 {:.2} s, resident memory {:.0} MB",
+                v["blocks"],
+                v["scans"],
+                v["file_mb"].as_f64().unwrap_or(f64::NAN),
+                v["open_s"].as_f64().unwrap_or(f64::NAN),
+                v["rss_after_mb"].as_f64().unwrap_or(f64::NAN)
+            );
+        }
+        return Ok(());
+    };
     let (rss0, _) = memory_kb();
     let t0 = Instant::now();
-    let service = MapService::open(&a.data_dir, ServiceConfig::default())?;
+    let service = MapService::open(&data_dir, ServiceConfig::default())?;
     let open_s = t0.elapsed().as_secs_f64();
     let (rss1, hwm) = memory_kb();
     let maps = service.list_maps();
@@ -49,12 +140,12 @@ pub fn run_restart(a: RestartArgs) -> Result<()> {
     let v = json!({"bench": "restart", "maps": maps.len(), "blocks": blocks, "scans": scans, "open_s": open_s,
                    "rss_before_mb": rss0 as f64 / 1024.0, "rss_after_mb": rss1 as f64 / 1024.0,
                    "peak_rss_mb": hwm as f64 / 1024.0});
-    if a.json {
+    if a.large.json {
         println!("{v}");
     } else {
         println!(
             "restart {}: {} maps, {blocks} blocks, {scans} journaled scans: open {open_s:.2} s, resident memory +{:.0} MB ({:.0} MB, peak {:.0} MB)",
-            a.data_dir.display(),
+            data_dir.display(),
             maps.len(),
             (rss1.saturating_sub(rss0)) as f64 / 1024.0,
             rss1 as f64 / 1024.0,
@@ -106,35 +197,52 @@ fn tiled(base: &EvidenceMap, blocks: usize, first_tile: usize) -> EvidenceMap {
     map
 }
 
+/// The blocks of 24 real scans of the simulated room: what large maps are tiled from.
+fn base_map() -> Result<EvidenceMap> {
+    let params = MapParams::default();
+    let mut base = EvidenceMap::new(params);
+    let mut integ = Integrator::new(params);
+    for r in &scans_of(5760, 24) {
+        base.apply(&r.delta(&mut integ, 1)?, 1);
+    }
+    Ok(base)
+}
+
+/// Writes a map of `blocks` blocks tiled from `base` starting at tile `first_tile`, journaling
+/// `journal` as applied scans of `source`.
+fn write_map(
+    path: &Path,
+    base: &EvidenceMap,
+    blocks: usize,
+    first_tile: usize,
+    source: &str,
+    journal: &[RawScan],
+) -> Result<()> {
+    let map = tiled(base, blocks, first_tile);
+    let rows: Vec<NewScan> = journal
+        .iter()
+        .enumerate()
+        .map(|(i, s)| NewScan {
+            source: source.into(),
+            seq: i as u64 + 1,
+            stamp_nanos: 1,
+            received_nanos: 1,
+            scan: s.clone(),
+        })
+        .collect();
+    save_map_with_scans(path, &map, &rows, rows.len() as u64)?;
+    Ok(())
+}
+
 /// Writes the two bench maps `a` and `b` (half of b's tiles overlap a's; each journals
 /// `journal` raw scans under its own source). Returns seconds spent.
 pub(super) fn write_maps(a: &Path, b: &Path, blocks: usize, journal: usize, points: usize) -> Result<f64> {
     let t0 = Instant::now();
-    let params = MapParams::default();
-    let mut base = EvidenceMap::new(params);
-    let mut integ = Integrator::new(params);
-    let raws = scans_of(5760, 24);
-    for r in &raws {
-        base.apply(&r.delta(&mut integ, 1)?, 1);
-    }
-    let per_tile = base.block_count().max(1);
-    let tiles = blocks.div_ceil(per_tile);
+    let base = base_map()?;
+    let tiles = blocks.div_ceil(base.block_count().max(1));
     let journal_scans = scans_of(points, journal);
-    for (path, first_tile, source) in [(a, 0, "robot-a"), (b, tiles / 2, "robot-b")] {
-        let map = tiled(&base, blocks, first_tile);
-        let rows: Vec<NewScan> = journal_scans
-            .iter()
-            .enumerate()
-            .map(|(i, s)| NewScan {
-                source: source.into(),
-                seq: i as u64 + 1,
-                stamp_nanos: 1,
-                received_nanos: 1,
-                scan: s.clone(),
-            })
-            .collect();
-        save_map_with_scans(path, &map, &rows, rows.len() as u64)?;
-    }
+    write_map(a, &base, blocks, 0, "robot-a", &journal_scans)?;
+    write_map(b, &base, blocks, tiles / 2, "robot-b", &journal_scans)?;
     Ok(t0.elapsed().as_secs_f64())
 }
 

@@ -3,6 +3,7 @@
 //! only; nothing here asserts on speed.
 
 use super::bench::percentile;
+use super::bench_world::random_direction;
 use super::serve::{Running, ServerConfig, runtime, start};
 use crate::api::pb;
 use crate::sim::{Lidar, SimScan, simulate};
@@ -43,15 +44,15 @@ const RAYS_PER_CALL: usize = 10_000;
 const HTTP_POINTS_PER_CALL: usize = 10_000;
 const RAY_RANGE_M: f64 = 8.0;
 /// A throughput run lasts until both: this much time in calls and this many calls.
-const MIN_BUSY: Duration = Duration::from_secs(1);
-const MIN_CALLS: usize = 5;
+pub(super) const MIN_BUSY: Duration = Duration::from_secs(1);
+pub(super) const MIN_CALLS: usize = 5;
 /// Distinct request payloads cycled through in a throughput run.
 const DISTINCT_BATCHES: usize = 4;
 /// Background ingest while measuring latency under ingest: one scan per period.
 const BACKGROUND_PERIOD: Duration = Duration::from_millis(100);
-const MAX_MESSAGE: usize = 256 << 20;
+pub(super) const MAX_MESSAGE: usize = 256 << 20;
 
-type Client = pb::map_service_client::MapServiceClient<Channel>;
+pub(super) type Client = pb::map_service_client::MapServiceClient<Channel>;
 
 pub fn run(a: ServerBenchArgs) -> Result<()> {
     let v = run_bench(&a)?;
@@ -170,7 +171,7 @@ async fn measure(running: &Running, a: &ServerBenchArgs, sim: &[SimScan]) -> Res
     }))
 }
 
-async fn connect(addr: SocketAddr) -> Result<Client> {
+pub(super) async fn connect(addr: SocketAddr) -> Result<Client> {
     Ok(Client::connect(format!("http://{addr}"))
         .await
         .with_context(|| format!("connecting to gRPC {addr}"))?
@@ -189,24 +190,24 @@ fn scan_request(source: &str, seq: u64, s: &SimScan) -> pb::InsertScanRequest {
 
 /// Calls counted and time spent inside them, for a throughput run.
 #[derive(Debug, Default)]
-struct Meter {
-    calls: usize,
-    items: usize,
-    busy: Duration,
+pub(super) struct Meter {
+    pub(super) calls: usize,
+    pub(super) items: usize,
+    pub(super) busy: Duration,
 }
 
 impl Meter {
-    fn done(&self) -> bool {
+    pub(super) fn done(&self) -> bool {
         self.calls >= MIN_CALLS && self.busy >= MIN_BUSY
     }
 
-    fn add(&mut self, items: usize, t0: Instant) {
+    pub(super) fn add(&mut self, items: usize, t0: Instant) {
         self.busy += t0.elapsed();
         self.calls += 1;
         self.items += items;
     }
 
-    fn per_s(&self) -> f64 {
+    pub(super) fn per_s(&self) -> f64 {
         self.items as f64 / self.busy.as_secs_f64()
     }
 }
@@ -215,24 +216,12 @@ fn random_point(rng: &mut ChaCha8Rng) -> [f64; 3] {
     ROOM.map(|extent| extent * rng.random::<f64>())
 }
 
-/// A uniformly random unit vector (rejection sampling in the unit ball).
-fn random_direction(rng: &mut ChaCha8Rng) -> [f64; 3] {
-    loop {
-        let v = [0; 3].map(|_| 2.0 * rng.random::<f64>() - 1.0);
-        let n2: f64 = v.iter().map(|x| x * x).sum();
-        if n2 > 1e-6 && n2 <= 1.0 {
-            let n = n2.sqrt();
-            return v.map(|x| x / n);
-        }
-    }
-}
-
 /// [`DISTINCT_BATCHES`] batches of `n` random points inside the room.
 fn random_batches(n: usize, rng: &mut ChaCha8Rng) -> Vec<Vec<[f64; 3]>> {
     (0..DISTINCT_BATCHES).map(|_| (0..n).map(|_| random_point(rng)).collect()).collect()
 }
 
-fn xyz_f32(points: &[[f64; 3]]) -> Vec<u8> {
+pub(super) fn xyz_f32(points: &[[f64; 3]]) -> Vec<u8> {
     points.iter().flat_map(|p| p.iter().flat_map(|&v| (v as f32).to_le_bytes())).collect()
 }
 
@@ -393,7 +382,7 @@ fn inprocess_points(snap: &crate::service::Snapshot, batches: &[Vec<[f64; 3]>]) 
 
 /// A minimal HTTP/1.1 client: one keep-alive connection, `Content-Length` bodies only.
 #[derive(Debug)]
-struct HttpConnection {
+pub(super) struct HttpConnection {
     host: SocketAddr,
     stream: BufReader<TcpStream>,
 }
@@ -402,14 +391,14 @@ struct HttpConnection {
 const MAX_HEAD_BYTES: usize = 64 << 10;
 
 impl HttpConnection {
-    async fn connect(host: SocketAddr) -> Result<Self> {
+    pub(super) async fn connect(host: SocketAddr) -> Result<Self> {
         let stream = TcpStream::connect(host).await.with_context(|| format!("connecting to HTTP {host}"))?;
         stream.set_nodelay(true)?;
         Ok(Self { host, stream: BufReader::new(stream) })
     }
 
     /// POSTs a JSON body; the response body, which must come with status 200.
-    async fn post_json(&mut self, path: &str, body: &[u8]) -> Result<Vec<u8>> {
+    pub(super) async fn post_json(&mut self, path: &str, body: &[u8]) -> Result<Vec<u8>> {
         let head = format!(
             "POST {path} HTTP/1.1\r\nHost: {}\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\r\n",
             self.host,
@@ -464,10 +453,10 @@ impl HttpConnection {
 
 /// A fresh directory under the system temp dir, removed (with its contents) on drop.
 #[derive(Debug)]
-struct TempDir(PathBuf);
+pub(super) struct TempDir(pub(super) PathBuf);
 
 impl TempDir {
-    fn new() -> Result<Self> {
+    pub(super) fn new() -> Result<Self> {
         static NEXT: AtomicU64 = AtomicU64::new(0);
         let nanos = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)

@@ -8,7 +8,13 @@ mod bench;
 mod bench_durable;
 mod bench_maps;
 #[cfg(feature = "server")]
+mod bench_query;
+#[cfg(feature = "server")]
+mod bench_query_net;
+mod bench_scale;
+#[cfg(feature = "server")]
 mod bench_server;
+mod bench_world;
 mod build;
 #[cfg(feature = "server")]
 mod demo;

@@ -37,9 +37,15 @@ impl CellKey {
     /// The cell containing world point `p_m` (metres) at resolution `res_m`, or `None` when the
     /// point is not finite or lies outside the i32 key range.
     pub fn from_point(p_m: [f64; 3], res_m: f64) -> Option<Self> {
+        // floor(v) is in the i32 range ⇔ MIN ≤ v < MAX + 1 (false for NaN and ±∞). Inside it the
+        // floor is the truncation, minus one where that rounded up: no libm `floor` call, which
+        // baseline x86-64 (no SSE4.1 `roundsd`) would make per coordinate.
         let k = |v: f64| {
-            let f = (v / res_m).floor();
-            (f.is_finite() && f >= f64::from(i32::MIN) && f <= f64::from(i32::MAX)).then_some(f as i32)
+            let q = v / res_m;
+            (q >= f64::from(i32::MIN) && q < f64::from(i32::MAX) + 1.0).then(|| {
+                let t = q as i32;
+                if f64::from(t) > q { t - 1 } else { t }
+            })
         };
         Some(Self::new(k(p_m[0])?, k(p_m[1])?, k(p_m[2])?))
     }
@@ -107,5 +113,21 @@ mod tests {
         assert!((c[1] + 0.05).abs() < 1e-12);
         assert!(CellKey::from_point([f64::NAN, 0.0, 0.0], 0.1).is_none());
         assert!(CellKey::from_point([1e12, 0.0, 0.0], 0.1).is_none());
+        // The edges of the key range, against the libm floor.
+        for v in [
+            -2147483648.0,
+            -2147483647.5,
+            -2147483648.5,
+            2147483647.0,
+            2147483647.9,
+            2147483648.0,
+            -0.0,
+            -1e-300,
+        ] {
+            let f: f64 = libm::floor(v);
+            let want = (f >= f64::from(i32::MIN) && f <= f64::from(i32::MAX)).then_some(f as i32);
+            assert_eq!(CellKey::from_point([v, 0.0, 0.0], 1.0).map(|c| c.x), want, "{v}");
+        }
+        assert!(CellKey::from_point([f64::INFINITY, 0.0, 0.0], 0.1).is_none());
     }
 }

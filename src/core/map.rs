@@ -201,6 +201,16 @@ impl EvidenceMap {
         }
     }
 
+    /// Inserts a block shared with another map (copied on its first write). Empty blocks are
+    /// not kept.
+    pub fn insert_shared_block(&mut self, key: BlockKey, block: Arc<BlockEvidence>) {
+        if block.is_empty() {
+            self.blocks.remove(&key);
+        } else {
+            self.blocks.insert(key, block);
+        }
+    }
+
     /// Adds another map's evidence cell by cell (exact). Parameters must be equal.
     pub fn merge_from(&mut self, other: &EvidenceMap) -> Result<(), Vec<String>> {
         let diff = self.params.differences(&other.params);

@@ -13,6 +13,7 @@ pub mod params;
 pub mod pose;
 pub mod query;
 pub mod raw_scan;
+pub mod ray;
 pub mod scatter;
 pub mod simd;
 pub mod training;

@@ -9,7 +9,8 @@
 //! - [`trajectory`] walks the room's route, keeping [`ROUTE_CLEARANCE_M`] from every solid.
 //! - [`Scene::truth_cells`] labels every cell of the interior (grown by one cell) occupied or
 //!   free by exact cell/solid overlap.
-//! - [`simulate`] puts it together.
+//! - [`simulate`] puts it together; [`simulate_outdoor`] drives a 64-beam LiDAR through a town
+//!   (benchmarks).
 //!
 //! # Determinism
 //!
@@ -20,6 +21,7 @@
 
 pub mod layout;
 mod lidar;
+mod outdoor;
 mod scene;
 mod solid;
 mod trajectory;
@@ -27,6 +29,7 @@ mod truth;
 
 pub use layout::{ROOM_SIZE_M, ROUTE_XY};
 pub use lidar::{Lidar, SimScan};
+pub use outdoor::{OUTDOOR_SENSOR_HEIGHT_M, OUTDOOR_STREET_PITCH_M, simulate_outdoor};
 pub use scene::Scene;
 pub use solid::Solid;
 pub use trajectory::{ROUTE_CLEARANCE_M, SENSOR_HEIGHT_M, trajectory};

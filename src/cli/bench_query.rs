@@ -1,0 +1,207 @@
+//! `bgkmap bench query`: query speed on a large map (the outdoor drive of [`super::bench_world`],
+//! well over a million cells with evidence), in-process and through every transport, with the
+//! same seeded workload: batched points, single-point latency, 1 m and 10 m boxes, 8 m and 30 m
+//! rays. Each transport is one [`QueryTransport`]; a new transport (zenoh, issue 5) adds an
+//! implementation and one line in [`measure_all`]. Measured figures only; nothing asserts speed.
+
+use super::bench::percentile;
+use super::bench_query_net::{Grpc, Http, InProcess, latencies_under_ingest};
+use super::bench_server::{MIN_BUSY, MIN_CALLS, TempDir};
+use super::bench_world::{Workload, build_map, outdoor_params, outdoor_scans};
+use super::serve::{ServerConfig, runtime, start};
+use crate::sim::SimScan;
+use anyhow::{Result, ensure};
+use clap::Args;
+use serde_json::{Value, json};
+use std::net::SocketAddr;
+use std::time::{Duration, Instant};
+
+#[derive(Debug, Args)]
+pub struct QueryBenchArgs {
+    /// Scans of the outdoor drive that build the map (4 give about 6M cells with evidence).
+    #[arg(long, default_value_t = 4)]
+    pub scans: usize,
+    /// Points per batched point query.
+    #[arg(long, default_value_t = 100_000)]
+    pub batch: usize,
+    /// Single-point queries per latency run.
+    #[arg(long, default_value_t = 2000)]
+    pub latency_samples: usize,
+    /// Rays per ray query.
+    #[arg(long, default_value_t = 10_000)]
+    pub rays: usize,
+    /// Threads integrating the map (building it is not measured).
+    #[arg(long, default_value_t = 2)]
+    pub build_threads: usize,
+    /// Print one JSON object.
+    #[arg(long)]
+    pub json: bool,
+}
+
+pub(super) const MAP: &str = "bench";
+
+/// A query transport under test. Every call answers how many items (points, cells, rays) the
+/// answer held, so a run can check it got a full answer.
+pub(super) trait QueryTransport {
+    fn name(&self) -> &'static str;
+    /// Batch `i` of [`Workload::point_batches`].
+    async fn points(&mut self, w: &Workload, i: usize) -> Result<usize>;
+    /// Single point `i` of [`Workload::singles`].
+    async fn single(&mut self, w: &Workload, i: usize) -> Result<usize>;
+    /// Box `i` of edge kind `kind` of [`Workload::boxes`].
+    async fn boxed(&mut self, w: &Workload, kind: usize, i: usize) -> Result<usize>;
+    /// Ray batch `i` of length kind `kind` of [`Workload::rays`].
+    async fn rays(&mut self, w: &Workload, kind: usize, i: usize) -> Result<usize>;
+}
+
+/// A call a throughput run repeats.
+#[derive(Debug, Clone, Copy)]
+enum Op {
+    Points,
+    /// Rays of length kind `k`.
+    Rays(usize),
+}
+
+/// Repeats `op` over the workload's distinct payloads until [`MIN_BUSY`] and [`MIN_CALLS`]
+/// (after one untimed call); items per second.
+async fn throughput<T: QueryTransport>(t: &mut T, w: &Workload, op: Op) -> Result<f64> {
+    let distinct = match op {
+        Op::Points => w.point_batches.len(),
+        Op::Rays(k) => w.rays[k].1.len(),
+    };
+    let once = async |t: &mut T, i: usize| match op {
+        Op::Points => t.points(w, i % distinct).await,
+        Op::Rays(k) => t.rays(w, k, i % distinct).await,
+    };
+    once(t, 0).await?;
+    let (mut items, mut busy, mut calls) = (0usize, Duration::ZERO, 0usize);
+    while calls < MIN_CALLS || busy < MIN_BUSY {
+        let t0 = Instant::now();
+        items += once(t, calls).await?;
+        busy += t0.elapsed();
+        calls += 1;
+    }
+    Ok(items as f64 / busy.as_secs_f64())
+}
+
+/// Every figure of one transport.
+pub(super) async fn measure<T: QueryTransport>(t: &mut T, w: &Workload) -> Result<Value> {
+    let points_per_s = throughput(t, w, Op::Points).await?;
+    let mut us = Vec::with_capacity(w.singles.len());
+    t.single(w, 0).await?;
+    for i in 0..w.singles.len() {
+        let t0 = Instant::now();
+        t.single(w, i).await?;
+        us.push(t0.elapsed().as_secs_f64() * 1e6);
+    }
+    let mut v = json!({"transport": t.name(), "points_per_s": points_per_s, "batch": w.point_batches[0].len(),
+                       "single_p50_us": percentile(&mut us, 0.5), "single_p99_us": percentile(&mut us, 0.99)});
+    for (kind, (edge, list)) in w.boxes.iter().enumerate() {
+        let mut ms = Vec::new();
+        let mut cells = 0;
+        for i in 0..list.len() {
+            let t0 = Instant::now();
+            cells += t.boxed(w, kind, i).await?;
+            ms.push(t0.elapsed().as_secs_f64() * 1e3);
+        }
+        v[format!("box_{edge}m_ms_median")] = json!(percentile(&mut ms, 0.5));
+        v[format!("box_{edge}m_cells_mean")] = json!(cells as f64 / list.len() as f64);
+    }
+    for (kind, (range, _)) in w.rays.iter().enumerate() {
+        v[format!("rays_{range}m_per_s")] = json!(throughput(t, w, Op::Rays(kind)).await?);
+    }
+    v["rays_per_call"] = json!(w.rays[0].1[0].len());
+    Ok(v)
+}
+
+pub fn run(a: QueryBenchArgs) -> Result<()> {
+    let v = run_bench(&a)?;
+    if a.json {
+        println!("{v}");
+    } else {
+        print_summary(&v);
+    }
+    Ok(())
+}
+
+/// Builds the map, measures in-process, then starts a server on it and measures each transport.
+pub fn run_bench(a: &QueryBenchArgs) -> Result<Value> {
+    ensure!(a.scans > 0 && a.batch > 0 && a.latency_samples > 0 && a.rays > 0, "counts must be > 0");
+    let sim = outdoor_scans(a.scans);
+    let t0 = Instant::now();
+    let map = build_map(&sim, outdoor_params(), a.build_threads.max(1));
+    let build_s = t0.elapsed().as_secs_f64();
+    ensure!(map.block_count() > 0, "the simulated drive produced an empty map");
+    let poses: Vec<[f64; 3]> = sim.iter().map(|s| s.origin).collect();
+    let w = Workload::new(&map, &poses, a.batch, a.latency_samples, a.rays);
+    let dir = TempDir::new()?;
+    crate::store::save_map(&dir.0.join(format!("{MAP}.bgkmap")), &map)?;
+    let mut v = json!({"bench": "query", "scans": sim.len(), "blocks": map.block_count(),
+                       "cells_with_evidence": map.cells_with_evidence(), "map_build_s": build_s,
+                       "raw_points": sim.iter().map(|s| s.points_world.len()).sum::<usize>()});
+    let config = ServerConfig {
+        data_dir: dir.0.clone(),
+        grpc_listen: SocketAddr::from(([127, 0, 0, 1], 0)),
+        http_listen: SocketAddr::from(([127, 0, 0, 1], 0)),
+        ..Default::default()
+    };
+    runtime()?.block_on(async {
+        v["in_process"] = measure(&mut InProcess::new(&map), &w).await?;
+        drop(map);
+        let running = start(&config).await?;
+        let r = measure_all(running.grpc_addr, running.http_addr, &w, &sim, &mut v).await;
+        running.shutdown().await?;
+        r
+    })?;
+    Ok(v)
+}
+
+/// Every network transport, then gRPC single-point latency while ingesting.
+async fn measure_all(
+    grpc: SocketAddr,
+    http: SocketAddr,
+    w: &Workload,
+    sim: &[SimScan],
+    v: &mut Value,
+) -> Result<()> {
+    v["grpc"] = measure(&mut Grpc::connect(grpc, w).await?, w).await?;
+    v["http"] = measure(&mut Http::connect(http, w).await?, w).await?;
+    // zenoh (issue 5): v["zenoh"] = measure(&mut Zenoh::connect(…, w).await?, w).await?;
+    let (p50, p99, scans, rate) = latencies_under_ingest(grpc, w, sim).await?;
+    v["grpc"]["single_p50_us_under_ingest"] = json!(p50);
+    v["grpc"]["single_p99_us_under_ingest"] = json!(p99);
+    v["grpc"]["background_scans"] = json!(scans);
+    v["grpc"]["background_scans_per_s"] = json!(rate);
+    Ok(())
+}
+
+fn print_summary(v: &Value) {
+    let f = |p: &str| v.pointer(p).and_then(Value::as_f64).unwrap_or(f64::NAN);
+    println!(
+        "query bench: map of {} scans of the simulated 64-beam drive, {} blocks, {} cells with evidence",
+        v["scans"], v["blocks"], v["cells_with_evidence"]
+    );
+    for t in ["in_process", "grpc", "http"] {
+        println!(
+            "  {t}: points ({} per call) {:.2} M/s; single point p50 {:.0} µs p99 {:.0} µs; boxes 1 m {:.3} ms, \
+             10 m {:.2} ms ({:.0} cells); rays ({} per call) 8 m {:.3} M/s, 30 m {:.3} M/s",
+            v[t]["batch"],
+            f(&format!("/{t}/points_per_s")) / 1e6,
+            f(&format!("/{t}/single_p50_us")),
+            f(&format!("/{t}/single_p99_us")),
+            f(&format!("/{t}/box_1m_ms_median")),
+            f(&format!("/{t}/box_10m_ms_median")),
+            f(&format!("/{t}/box_10m_cells_mean")),
+            v[t]["rays_per_call"],
+            f(&format!("/{t}/rays_8m_per_s")) / 1e6,
+            f(&format!("/{t}/rays_30m_per_s")) / 1e6,
+        );
+    }
+    println!(
+        "  gRPC single point while ingesting ({} scans at {:.1} scans/s): p50 {:.0} µs, p99 {:.0} µs",
+        v["grpc"]["background_scans"],
+        f("/grpc/background_scans_per_s"),
+        f("/grpc/single_p50_us_under_ingest"),
+        f("/grpc/single_p99_us_under_ingest")
+    );
+}

@@ -1,0 +1,304 @@
+//! The transports of `bgkmap bench query`: in-process (the reference), gRPC and HTTP JSON, each
+//! with its requests encoded once up front so a run times the server, not the client's
+//! encoding; and gRPC single-point latency while scans are being ingested.
+
+use super::bench::percentile;
+use super::bench_query::{MAP, QueryTransport};
+use super::bench_server::{Client, HttpConnection, connect, xyz_f32};
+use super::bench_world::Workload;
+use crate::api::pb;
+use crate::core::query::{BoxQuery, StopAt, cast_ray, query_box, query_points};
+use crate::core::{EvidenceMap, Thresholds};
+use crate::sim::SimScan;
+use anyhow::{Context, Result, ensure};
+use serde_json::json;
+use std::net::SocketAddr;
+use std::time::{Duration, Instant};
+
+/// Largest box answer accepted in-process (the server's default limit).
+const MAX_BOX_CELLS: u64 = 4_000_000;
+
+/// The core's query functions on the map itself (no service, no copies).
+#[derive(Debug)]
+pub(super) struct InProcess<'m> {
+    map: &'m EvidenceMap,
+    th: Thresholds,
+    batches: Vec<Vec<[f64; 3]>>,
+}
+
+impl<'m> InProcess<'m> {
+    pub(super) fn new(map: &'m EvidenceMap) -> Self {
+        Self { map, th: map.params().thresholds, batches: Vec::new() }
+    }
+
+    fn widen(p: &[f32; 3]) -> [f64; 3] {
+        p.map(f64::from)
+    }
+}
+
+impl QueryTransport for InProcess<'_> {
+    fn name(&self) -> &'static str {
+        "in_process"
+    }
+
+    async fn points(&mut self, w: &Workload, i: usize) -> Result<usize> {
+        if self.batches.is_empty() {
+            self.batches = w.point_batches.iter().map(|b| b.iter().map(Self::widen).collect()).collect();
+        }
+        Ok(std::hint::black_box(query_points(self.map, &self.batches[i], &self.th)).len())
+    }
+
+    async fn single(&mut self, w: &Workload, i: usize) -> Result<usize> {
+        let p = [Self::widen(&w.singles[i])];
+        Ok(std::hint::black_box(query_points(self.map, &p, &self.th)).len())
+    }
+
+    async fn boxed(&mut self, w: &Workload, kind: usize, i: usize) -> Result<usize> {
+        let (min_world, max_world) = w.boxes[kind].1[i];
+        let q = BoxQuery { min_world, max_world, state: None, coarsen: 0 };
+        Ok(query_box(self.map, &q, &self.th, MAX_BOX_CELLS)?.len())
+    }
+
+    async fn rays(&mut self, w: &Workload, kind: usize, i: usize) -> Result<usize> {
+        let mut n = 0;
+        for r in &w.rays[kind].1[i] {
+            std::hint::black_box(cast_ray(
+                self.map,
+                r.origin,
+                r.direction,
+                r.max_range_m,
+                StopAt::Occupied,
+                &self.th,
+            )?);
+            n += 1;
+        }
+        Ok(n)
+    }
+}
+
+/// gRPC (tonic client on one HTTP/2 connection).
+#[derive(Debug)]
+pub(super) struct Grpc {
+    client: Client,
+    batches: Vec<Vec<u8>>,
+    singles: Vec<Vec<u8>>,
+    rays: Vec<Vec<Vec<pb::Ray>>>,
+}
+
+fn points_request(xyz: Vec<u8>) -> pb::QueryPointsRequest {
+    pb::QueryPointsRequest { map: MAP.into(), xyz_f32: xyz, thresholds: None }
+}
+
+fn f32_bytes(points: &[[f32; 3]]) -> Vec<u8> {
+    points.iter().flat_map(|p| p.iter().flat_map(|v| v.to_le_bytes())).collect()
+}
+
+impl Grpc {
+    pub(super) async fn connect(addr: SocketAddr, w: &Workload) -> Result<Self> {
+        let rays = w
+            .rays
+            .iter()
+            .map(|(_, batches)| {
+                batches
+                    .iter()
+                    .map(|b| {
+                        b.iter()
+                            .map(|r| pb::Ray {
+                                origin: r.origin.to_vec(),
+                                direction: r.direction.to_vec(),
+                                max_range: r.max_range_m,
+                            })
+                            .collect()
+                    })
+                    .collect()
+            })
+            .collect();
+        Ok(Self {
+            client: connect(addr).await?,
+            batches: w.point_batches.iter().map(|b| f32_bytes(b)).collect(),
+            singles: w.singles.iter().map(|p| f32_bytes(std::slice::from_ref(p))).collect(),
+            rays,
+        })
+    }
+}
+
+impl QueryTransport for Grpc {
+    fn name(&self) -> &'static str {
+        "grpc"
+    }
+
+    async fn points(&mut self, _: &Workload, i: usize) -> Result<usize> {
+        let req = points_request(self.batches[i].clone());
+        Ok(self.client.query_points(req).await.context("QueryPoints")?.get_ref().probability.len())
+    }
+
+    async fn single(&mut self, _: &Workload, i: usize) -> Result<usize> {
+        let req = points_request(self.singles[i].clone());
+        Ok(self.client.query_points(req).await.context("QueryPoints")?.get_ref().probability.len())
+    }
+
+    async fn boxed(&mut self, w: &Workload, kind: usize, i: usize) -> Result<usize> {
+        let (min, max) = w.boxes[kind].1[i];
+        let req = pb::QueryBoxRequest {
+            map: MAP.into(),
+            min: min.to_vec(),
+            max: max.to_vec(),
+            ..Default::default()
+        };
+        Ok(self.client.query_box(req).await.context("QueryBox")?.get_ref().probability.len())
+    }
+
+    async fn rays(&mut self, _: &Workload, kind: usize, i: usize) -> Result<usize> {
+        let req = pb::CastRaysRequest {
+            map: MAP.into(),
+            rays: self.rays[kind][i].clone(),
+            stop_at: pb::StopAt::Occupied as i32,
+            thresholds: None,
+        };
+        Ok(self.client.cast_rays(req).await.context("CastRays")?.get_ref().results.len())
+    }
+}
+
+/// HTTP JSON over one keep-alive connection. Answers are counted by their JSON objects (one
+/// per point, cell or ray, besides the envelope) rather than parsed, so parsing on the client
+/// does not count against the server.
+#[derive(Debug)]
+pub(super) struct Http {
+    conn: HttpConnection,
+    batches: Vec<Vec<u8>>,
+    singles: Vec<Vec<u8>>,
+    boxes: Vec<Vec<Vec<u8>>>,
+    rays: Vec<Vec<Vec<u8>>>,
+}
+
+fn objects(body: &[u8]) -> usize {
+    body.iter().filter(|&&b| b == b'{').count()
+}
+
+impl Http {
+    pub(super) async fn connect(addr: SocketAddr, w: &Workload) -> Result<Self> {
+        let points = |b: &[[f32; 3]]| json!({ "points": b }).to_string().into_bytes();
+        let boxes = w
+            .boxes
+            .iter()
+            .map(|(_, list)| {
+                list.iter().map(|(lo, hi)| json!({"min": lo, "max": hi}).to_string().into_bytes()).collect()
+            })
+            .collect();
+        let rays = w
+            .rays
+            .iter()
+            .map(|(_, batches)| {
+                batches
+                    .iter()
+                    .map(|b| {
+                        let list: Vec<_> = b
+                            .iter()
+                            .map(|r| json!({"origin": r.origin, "direction": r.direction, "max_range": r.max_range_m}))
+                            .collect();
+                        json!({"rays": list, "stop_at": "occupied"}).to_string().into_bytes()
+                    })
+                    .collect()
+            })
+            .collect();
+        Ok(Self {
+            conn: HttpConnection::connect(addr).await?,
+            batches: w.point_batches.iter().map(|b| points(b)).collect(),
+            singles: w.singles.iter().map(|p| points(std::slice::from_ref(p))).collect(),
+            boxes,
+            rays,
+        })
+    }
+
+    async fn post(&mut self, what: &str, body: &[u8], envelope: usize) -> Result<usize> {
+        let path = format!("/v1/maps/{MAP}/query/{what}");
+        Ok(objects(&self.conn.post_json(&path, body).await?).saturating_sub(envelope))
+    }
+}
+
+impl QueryTransport for Http {
+    fn name(&self) -> &'static str {
+        "http"
+    }
+
+    async fn points(&mut self, _: &Workload, i: usize) -> Result<usize> {
+        let body = std::mem::take(&mut self.batches[i]);
+        let n = self.post("points", &body, 1).await;
+        self.batches[i] = body;
+        n
+    }
+
+    async fn single(&mut self, _: &Workload, i: usize) -> Result<usize> {
+        let body = std::mem::take(&mut self.singles[i]);
+        let n = self.post("points", &body, 1).await;
+        self.singles[i] = body;
+        n
+    }
+
+    async fn boxed(&mut self, _: &Workload, kind: usize, i: usize) -> Result<usize> {
+        let body = std::mem::take(&mut self.boxes[kind][i]);
+        // Envelope: the answer and its `counts`.
+        let n = self.post("box", &body, 2).await;
+        self.boxes[kind][i] = body;
+        n
+    }
+
+    async fn rays(&mut self, _: &Workload, kind: usize, i: usize) -> Result<usize> {
+        let body = std::mem::take(&mut self.rays[kind][i]);
+        let n = self.post("rays", &body, 1).await;
+        self.rays[kind][i] = body;
+        n
+    }
+}
+
+/// Background ingest: at most one scan per this period.
+const BACKGROUND_PERIOD: Duration = Duration::from_millis(100);
+/// A latency run under ingest lasts at least this long (and the workload's sample count).
+const UNDER_INGEST_MIN: Duration = Duration::from_secs(4);
+
+/// gRPC single-point latencies while another connection inserts the drive's scans (as source
+/// `bench-background`, each acknowledged once applied) at up to 10 per second:
+/// (p50 µs, p99 µs, scans applied, scans applied per second).
+pub(super) async fn latencies_under_ingest(
+    grpc: SocketAddr,
+    w: &Workload,
+    sim: &[SimScan],
+) -> Result<(f64, f64, u64, f64)> {
+    let scans: Vec<pb::Scan> =
+        sim.iter().map(|s| pb::Scan::world("bench-background", 0, s.origin, &s.points_world)).collect();
+    let mut writer = connect(grpc).await?;
+    let (stop, mut stopped) = tokio::sync::watch::channel(false);
+    let background = tokio::spawn(async move {
+        let mut tick = tokio::time::interval(BACKGROUND_PERIOD);
+        tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        let (mut applied, t0) = (0u64, Instant::now());
+        for (seq, scan) in (1u64..).zip(scans.iter().cycle()) {
+            tokio::select! {
+                biased;
+                _ = stopped.changed() => break,
+                _ = tick.tick() => {}
+            }
+            let scan = pb::Scan { seq, ..scan.clone() };
+            let req = pb::InsertScanRequest { map: MAP.into(), scan: Some(scan), wait_applied: true };
+            if writer.insert_scan(req).await.context("background InsertScan")?.get_ref().applied {
+                applied += 1;
+            }
+        }
+        anyhow::Ok((applied, t0.elapsed().as_secs_f64()))
+    });
+    let mut client = connect(grpc).await?;
+    let mut us = Vec::new();
+    let t0 = Instant::now();
+    let mut i = 0;
+    while us.len() < w.singles.len() || t0.elapsed() < UNDER_INGEST_MIN {
+        let req = points_request(xyz_f32(&[w.singles[i % w.singles.len()].map(f64::from)]));
+        let t = Instant::now();
+        let answer = client.query_points(req).await.context("QueryPoints")?;
+        us.push(t.elapsed().as_secs_f64() * 1e6);
+        ensure!(answer.get_ref().probability.len() == 1, "QueryPoints answered the wrong number of points");
+        i += 1;
+    }
+    let _ = stop.send(true);
+    let (applied, secs) = background.await.context("background ingest task")??;
+    Ok((percentile(&mut us, 0.5), percentile(&mut us, 0.99), applied, applied as f64 / secs))
+}
