@@ -105,7 +105,8 @@ fn info_json(i: &MapInfo) -> Value {
         .iter()
         .map(|(k, s)| {
             let v = json!({"received": s.received, "applied": s.applied, "duplicates": s.duplicates,
-                           "rejected": s.rejected, "highest_seq": s.highest_seq});
+                           "rejected": s.rejected, "highest_seq": s.highest_seq,
+                           "dropped_points": s.dropped_points});
             (k.clone(), v)
         })
         .collect();
@@ -446,6 +447,13 @@ async fn metrics(State(st): State<AppState>) -> Response {
                     i.name, src
                 );
             }
+        }
+    }
+    let _ = writeln!(out, "# TYPE bgkmap_dropped_points_total counter");
+    for i in &maps {
+        for (src, s) in &i.sources {
+            let (map, n) = (&i.name, s.dropped_points);
+            let _ = writeln!(out, "bgkmap_dropped_points_total{{map=\"{map}\",source=\"{src}\"}} {n}");
         }
     }
     let _ = writeln!(out, "# TYPE bgkmap_integration_seconds_total counter");

@@ -13,10 +13,12 @@ pub mod pb {
     pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("bgkmap_descriptor");
 }
 
+pub mod calls;
 pub mod codec;
 pub mod grpc;
 pub mod http;
 pub mod status;
+pub mod zenoh_transport;
 
 impl pb::Scan {
     /// A world-frame scan seen from `origin_world` (identity rotation), points packed as

@@ -35,7 +35,7 @@ pub struct ServerBenchArgs {
     pub json: bool,
 }
 
-const MAP: &str = "bench";
+pub(super) const MAP: &str = "bench";
 /// Interior of the simulated room (metres): x 0..10, y 0..12, z 0..3.
 const ROOM: [f64; 3] = [10.0, 12.0, 3.0];
 /// Rays per CastRays request and points per HTTP request.
@@ -51,7 +51,7 @@ const DISTINCT_BATCHES: usize = 4;
 const BACKGROUND_PERIOD: Duration = Duration::from_millis(100);
 const MAX_MESSAGE: usize = 256 << 20;
 
-type Client = pb::map_service_client::MapServiceClient<Channel>;
+pub(super) type Client = pb::map_service_client::MapServiceClient<Channel>;
 
 pub fn run(a: ServerBenchArgs) -> Result<()> {
     let v = run_bench(&a)?;
@@ -170,7 +170,7 @@ async fn measure(running: &Running, a: &ServerBenchArgs, sim: &[SimScan]) -> Res
     }))
 }
 
-async fn connect(addr: SocketAddr) -> Result<Client> {
+pub(super) async fn connect(addr: SocketAddr) -> Result<Client> {
     Ok(Client::connect(format!("http://{addr}"))
         .await
         .with_context(|| format!("connecting to gRPC {addr}"))?
@@ -187,24 +187,24 @@ fn scan_request(source: &str, seq: u64, s: &SimScan) -> pb::InsertScanRequest {
 
 /// Calls counted and time spent inside them, for a throughput run.
 #[derive(Debug, Default)]
-struct Meter {
+pub(super) struct Meter {
     calls: usize,
     items: usize,
     busy: Duration,
 }
 
 impl Meter {
-    fn done(&self) -> bool {
+    pub(super) fn done(&self) -> bool {
         self.calls >= MIN_CALLS && self.busy >= MIN_BUSY
     }
 
-    fn add(&mut self, items: usize, t0: Instant) {
+    pub(super) fn add(&mut self, items: usize, t0: Instant) {
         self.busy += t0.elapsed();
         self.calls += 1;
         self.items += items;
     }
 
-    fn per_s(&self) -> f64 {
+    pub(super) fn per_s(&self) -> f64 {
         self.items as f64 / self.busy.as_secs_f64()
     }
 }
@@ -226,20 +226,20 @@ fn random_direction(rng: &mut ChaCha8Rng) -> [f64; 3] {
 }
 
 /// [`DISTINCT_BATCHES`] batches of `n` random points inside the room.
-fn random_batches(n: usize, rng: &mut ChaCha8Rng) -> Vec<Vec<[f64; 3]>> {
+pub(super) fn random_batches(n: usize, rng: &mut ChaCha8Rng) -> Vec<Vec<[f64; 3]>> {
     (0..DISTINCT_BATCHES).map(|_| (0..n).map(|_| random_point(rng)).collect()).collect()
 }
 
-fn xyz_f32(points: &[[f64; 3]]) -> Vec<u8> {
+pub(super) fn xyz_f32(points: &[[f64; 3]]) -> Vec<u8> {
     points.iter().flat_map(|p| p.iter().flat_map(|&v| (v as f32).to_le_bytes())).collect()
 }
 
-fn points_request(xyz: Vec<u8>) -> pb::QueryPointsRequest {
+pub(super) fn points_request(xyz: Vec<u8>) -> pb::QueryPointsRequest {
     pb::QueryPointsRequest { map: MAP.into(), xyz_f32: xyz, thresholds: None }
 }
 
 /// gRPC QueryPoints throughput, `batch` points per call (after one untimed call).
-async fn grpc_points(client: &mut Client, batch: usize, rng: &mut ChaCha8Rng) -> Result<f64> {
+pub(super) async fn grpc_points(client: &mut Client, batch: usize, rng: &mut ChaCha8Rng) -> Result<f64> {
     let payloads: Vec<Vec<u8>> = random_batches(batch, rng).iter().map(|b| xyz_f32(b)).collect();
     let warm = client.query_points(points_request(payloads[0].clone())).await.context("QueryPoints")?;
     ensure!(warm.get_ref().probability.len() == batch, "QueryPoints answered the wrong number of points");
@@ -462,10 +462,10 @@ impl HttpConnection {
 
 /// A fresh directory under the system temp dir, removed (with its contents) on drop.
 #[derive(Debug)]
-struct TempDir(PathBuf);
+pub(super) struct TempDir(pub(super) PathBuf);
 
 impl TempDir {
-    fn new() -> Result<Self> {
+    pub(super) fn new() -> Result<Self> {
         static NEXT: AtomicU64 = AtomicU64::new(0);
         let nanos = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)

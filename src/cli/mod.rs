@@ -6,6 +6,8 @@ mod args;
 mod bench;
 #[cfg(feature = "server")]
 mod bench_server;
+#[cfg(feature = "zenoh")]
+mod bench_zenoh;
 mod build;
 #[cfg(feature = "server")]
 mod demo;

@@ -5,6 +5,7 @@
 
 use crate::api::grpc::{GrpcConfig, routes};
 use crate::api::http::{HttpConfig, router};
+use crate::api::zenoh_transport::{ZenohConfig, ZenohMode};
 use crate::service::{MapService, ScanLimits, ServiceConfig};
 use anyhow::{Context, Result};
 use clap::Args;
@@ -33,6 +34,8 @@ pub struct ServerConfig {
     pub max_box_cells: u64,
     /// Largest request message / body in bytes. Default 67108864 (64 MiB).
     pub max_message_bytes: usize,
+    /// The zenoh session (table `[zenoh]`). Default off.
+    pub zenoh: ZenohConfig,
 }
 
 impl Default for ServerConfig {
@@ -46,6 +49,7 @@ impl Default for ServerConfig {
             max_points: 4 << 20,
             max_box_cells: 4_000_000,
             max_message_bytes: 64 << 20,
+            zenoh: ZenohConfig::default(),
         }
     }
 }
@@ -70,6 +74,52 @@ pub struct ServeArgs {
     /// Largest box query in lattice positions.
     #[arg(long, env = "BGKMAP_MAX_BOX_CELLS")]
     pub max_box_cells: Option<u64>,
+    #[command(flatten)]
+    pub zenoh: ZenohArgs,
+}
+
+/// zenoh flags; any of them turns the session on.
+#[derive(Debug, Default, Args)]
+pub struct ZenohArgs {
+    /// Open the zenoh session (peer on tcp/127.0.0.1:7450 unless configured otherwise).
+    #[arg(long = "zenoh", env = "BGKMAP_ZENOH")]
+    pub enabled: bool,
+    /// zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7450 (repeatable; replaces the
+    /// configured ones; port 0 picks a free port).
+    #[arg(
+        long = "zenoh-listen",
+        env = "BGKMAP_ZENOH_LISTEN",
+        value_name = "ENDPOINT",
+        value_delimiter = ','
+    )]
+    pub listen: Vec<String>,
+    /// zenoh endpoint to connect to: a peer or a router, e.g. tcp/127.0.0.1:7447 (repeatable).
+    #[arg(
+        long = "zenoh-connect",
+        env = "BGKMAP_ZENOH_CONNECT",
+        value_name = "ENDPOINT",
+        value_delimiter = ','
+    )]
+    pub connect: Vec<String>,
+    /// zenoh session mode.
+    #[arg(long = "zenoh-mode", env = "BGKMAP_ZENOH_MODE")]
+    pub mode: Option<ZenohMode>,
+}
+
+impl ZenohArgs {
+    fn apply(&self, c: &mut ZenohConfig) {
+        if !self.listen.is_empty() {
+            c.listen = self.listen.clone();
+        }
+        if !self.connect.is_empty() {
+            c.connect = self.connect.clone();
+        }
+        if let Some(m) = self.mode {
+            c.mode = m;
+        }
+        c.enabled |=
+            self.enabled || !self.listen.is_empty() || !self.connect.is_empty() || self.mode.is_some();
+    }
 }
 
 impl ServeArgs {
@@ -98,8 +148,12 @@ impl ServeArgs {
         if let Some(v) = self.max_box_cells {
             c.max_box_cells = v;
         }
+        self.zenoh.apply(&mut c.zenoh);
         anyhow::ensure!(c.queue_capacity > 0, "queue_capacity must be > 0");
         anyhow::ensure!(c.threads_per_scan > 0, "threads_per_scan must be > 0");
+        if c.zenoh.enabled {
+            c.zenoh.validate().map_err(anyhow::Error::msg)?;
+        }
         Ok(c)
     }
 }
@@ -110,6 +164,11 @@ pub struct Running {
     pub grpc_addr: SocketAddr,
     pub http_addr: SocketAddr,
     pub service: Arc<MapService>,
+    /// The zenoh session's listening locators (empty without zenoh or in client mode).
+    pub zenoh_locators: Vec<String>,
+    /// The zenoh transport, when enabled.
+    #[cfg(feature = "zenoh")]
+    pub zenoh: Option<crate::api::zenoh_transport::ZenohTransport>,
     tasks: Vec<tokio::task::JoinHandle<Result<()>>>,
     stop: tokio::sync::watch::Sender<bool>,
 }
@@ -118,6 +177,10 @@ impl Running {
     /// Stops accepting requests, finishes those in flight, drains every map's queue.
     pub async fn shutdown(self) -> Result<()> {
         let _ = self.stop.send(true);
+        #[cfg(feature = "zenoh")]
+        if let Some(z) = self.zenoh {
+            z.shutdown().await;
+        }
         for t in self.tasks {
             t.await.context("server task panicked")??;
         }
@@ -152,7 +215,8 @@ pub async fn start(c: &ServerConfig) -> Result<Running> {
         let _ = rx.wait_for(|s| *s).await;
     };
     let grpc_config = GrpcConfig { max_box_cells: c.max_box_cells, max_message_bytes: c.max_message_bytes };
-    let grpc_routes = routes(service.clone(), grpc_config).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    let grpc_routes =
+        routes(service.clone(), grpc_config.clone()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
     let grpc = tokio::spawn({
         let rx = stop_rx.clone();
         async move {
@@ -168,7 +232,28 @@ pub async fn start(c: &ServerConfig) -> Result<Running> {
     let http = tokio::spawn(async move {
         axum::serve(http_listener, app).with_graceful_shutdown(stopped(stop_rx)).await.context("HTTP server")
     });
-    Ok(Running { grpc_addr, http_addr, service, tasks: vec![grpc, http], stop })
+    let tasks = vec![grpc, http];
+    #[cfg(feature = "zenoh")]
+    {
+        let zenoh = match c.zenoh.enabled {
+            false => None,
+            true => {
+                let calls = crate::api::calls::ProtoCalls::new(service.clone(), grpc_config.clone());
+                let started = crate::api::zenoh_transport::ZenohTransport::start(calls, &c.zenoh).await;
+                Some(started.context("starting zenoh")?)
+            }
+        };
+        let zenoh_locators = zenoh.as_ref().map(|z| z.locators().to_vec()).unwrap_or_default();
+        Ok(Running { grpc_addr, http_addr, service, zenoh_locators, zenoh, tasks, stop })
+    }
+    #[cfg(not(feature = "zenoh"))]
+    {
+        anyhow::ensure!(
+            !c.zenoh.enabled,
+            "zenoh is enabled but this bgkmap was built without the zenoh feature"
+        );
+        Ok(Running { grpc_addr, http_addr, service, zenoh_locators: Vec::new(), tasks, stop })
+    }
 }
 
 /// Accepted connections with Nagle's algorithm off: small answers (single-point queries) must
@@ -218,6 +303,10 @@ pub fn run(a: ServeArgs) -> Result<()> {
     let config = a.resolve()?;
     runtime()?.block_on(async {
         let running = start(&config).await?;
+        // zenoh first: test harnesses read lines until both gRPC and HTTP are reported.
+        for l in &running.zenoh_locators {
+            println!("zenoh listening on {l}");
+        }
         println!("grpc listening on {}", running.grpc_addr);
         println!("http listening on {}", running.http_addr);
         println!("data directory {}", config.data_dir.display());
@@ -245,6 +334,7 @@ mod tests {
             (parsed.max_points, parsed.max_box_cells, parsed.max_message_bytes),
             (d.max_points, d.max_box_cells, d.max_message_bytes)
         );
+        assert_eq!(parsed.zenoh, d.zenoh);
         assert!(toml::from_str::<ServerConfig>("bogus = 1").is_err(), "unknown keys are refused");
     }
 
@@ -260,8 +350,11 @@ mod tests {
             http_listen: None,
             queue_capacity: Some(3),
             max_box_cells: None,
+            zenoh: ZenohArgs { connect: vec!["tcp/127.0.0.1:7447".into()], ..ZenohArgs::default() },
         };
         let c = args.resolve().unwrap();
         assert_eq!((c.queue_capacity, c.max_box_cells), (3, 10));
+        assert!(c.zenoh.enabled, "a zenoh endpoint flag turns zenoh on");
+        assert_eq!((c.zenoh.connect.len(), c.zenoh.listen.len()), (1, 1));
     }
 }

@@ -94,6 +94,8 @@ pub struct SourceStats {
     pub duplicates: u64,
     pub rejected: u64,
     pub highest_seq: Option<u64>,
+    /// Non-finite input points dropped from this source's applied scans.
+    pub dropped_points: u64,
 }
 
 /// What `GetMap` / `ListMaps` report.
@@ -289,6 +291,20 @@ impl MapService {
                 }
             }
         }
+    }
+
+    /// Counts a scan of `source` that a transport refused before it reached the map (a payload
+    /// that does not decode), as `rejected` like a scan that fails validation. The map must
+    /// exist and the source name be valid (1–`max_source_len` bytes), so a stranger cannot grow
+    /// the per-source table with names of any length.
+    pub fn count_rejected(&self, name: &str, source: &str) -> Result<(), ServiceError> {
+        let h = self.handle(name)?;
+        if source.is_empty() || source.len() > self.config.limits.max_source_len {
+            let max = self.config.limits.max_source_len;
+            return Err(ServiceError::invalid("source", format!("must be 1–{max} bytes")));
+        }
+        lock(&h.sources).entry(source.to_string()).or_default().rejected += 1;
+        Ok(())
     }
 
     /// Submits a scan and waits for its outcome (for synchronous callers and tests).

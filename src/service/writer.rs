@@ -95,6 +95,7 @@ impl Writer {
         match result {
             Ok(a) if a.applied => {
                 s.applied += 1;
+                s.dropped_points += a.dropped_points as u64;
                 s.highest_seq = Some(s.highest_seq.map_or(scan.seq, |h| h.max(scan.seq)));
             }
             Ok(_) => s.duplicates += 1,

@@ -328,6 +328,7 @@ def _info_from_pb(m: Any) -> Dict[str, Any]:
                 "duplicates": int(s.duplicates),
                 "rejected": int(s.rejected),
                 "highest_seq": int(s.highest_seq) if s.HasField("highest_seq") else None,
+                "dropped_points": int(s.dropped_points),
             }
             for s in m.sources
         },
@@ -350,6 +351,7 @@ def _info_from_json(j: Mapping[str, Any]) -> Dict[str, Any]:
                 "duplicates": int(s["duplicates"]),
                 "rejected": int(s["rejected"]),
                 "highest_seq": None if s.get("highest_seq") is None else int(s["highest_seq"]),
+                "dropped_points": int(s.get("dropped_points", 0)),
             }
             for name, s in j.get("sources", {}).items()
         },
@@ -538,7 +540,8 @@ class Client:
 
         Returns ``{"map", "params": {name: value, …} (every parameter of PARAM_NAMES),
         "version" (scans applied), "blocks", "cells_with_evidence", "queued",
-        "sources": {source: {"received", "applied", "duplicates", "rejected", "highest_seq"}}}``.
+        "sources": {source: {"received", "applied", "duplicates", "rejected", "highest_seq",
+        "dropped_points"}}}``.
         Unknown maps raise ``BgkmapError`` ``NOT_FOUND``.
         """
         if self.transport == "grpc":

@@ -83,20 +83,22 @@ class GetMapRequest(_message.Message):
     def __init__(self, map: _Optional[str] = ...) -> None: ...
 
 class SourceStats(_message.Message):
-    __slots__ = ("source", "received", "applied", "duplicates", "rejected", "highest_seq")
+    __slots__ = ("source", "received", "applied", "duplicates", "rejected", "highest_seq", "dropped_points")
     SOURCE_FIELD_NUMBER: _ClassVar[int]
     RECEIVED_FIELD_NUMBER: _ClassVar[int]
     APPLIED_FIELD_NUMBER: _ClassVar[int]
     DUPLICATES_FIELD_NUMBER: _ClassVar[int]
     REJECTED_FIELD_NUMBER: _ClassVar[int]
     HIGHEST_SEQ_FIELD_NUMBER: _ClassVar[int]
+    DROPPED_POINTS_FIELD_NUMBER: _ClassVar[int]
     source: str
     received: int
     applied: int
     duplicates: int
     rejected: int
     highest_seq: int
-    def __init__(self, source: _Optional[str] = ..., received: _Optional[int] = ..., applied: _Optional[int] = ..., duplicates: _Optional[int] = ..., rejected: _Optional[int] = ..., highest_seq: _Optional[int] = ...) -> None: ...
+    dropped_points: int
+    def __init__(self, source: _Optional[str] = ..., received: _Optional[int] = ..., applied: _Optional[int] = ..., duplicates: _Optional[int] = ..., rejected: _Optional[int] = ..., highest_seq: _Optional[int] = ..., dropped_points: _Optional[int] = ...) -> None: ...
 
 class MapInfo(_message.Message):
     __slots__ = ("map", "params", "version", "blocks", "cells_with_evidence", "queued", "sources")
