@@ -81,7 +81,9 @@ fn scan_message(path: &Path, source: &str, seq: u64) -> pb::Scan {
 }
 
 /// Publishes every scan twice (all, then all again) on `bgkmap/<map>/scans/<source>` once the
-/// server's subscriber matches, with congestion control Block so nothing is dropped.
+/// server's subscriber matches, with congestion control Block so nothing is dropped. The
+/// session must stay open until the server has them: closing it right away may drop puts that
+/// are still queued (zenoh sends its close ahead of them).
 fn publish_twice(session: &zenoh::Session, map: &str, source: &str, scans: &[Vec<u8>]) {
     let key = format!("bgkmap/{map}/scans/{source}");
     let publisher =
@@ -117,6 +119,7 @@ with zenoh.open(conf) as s:
         for f in files:
             with open(f, "rb") as fh:
                 pub.put(fh.read())
+    sys.stdin.readline()  # stay connected until the test has seen every scan arrive
 "#;
 
 /// A Python with `eclipse-zenoh`: `$BGKMAP_PYTHON`, else the test venv (`$BGKMAP_VENV`, else
@@ -172,27 +175,35 @@ async fn three_robots_fill_one_map_exactly_like_an_offline_build_of_all_their_sc
             .arg(&server.zenoh_locators[0])
             .arg("bgkmap/team/scans/r3")
             .args(&files)
+            .stdin(std::process::Stdio::piped())
             .spawn()
             .unwrap()
     });
     let rust_robots = if python.is_some() { 2 } else { 3 };
-    std::thread::scope(|scope| {
-        for k in 0..rust_robots {
-            let (server, set) = (&server, &sets[k]);
-            scope.spawn(move || {
-                let session = peer(server);
-                publish_twice(&session, "team", robots[k], set);
-                session.close().wait().unwrap();
-            });
-        }
+    let sessions: Vec<zenoh::Session> = std::thread::scope(|scope| {
+        let threads: Vec<_> = (0..rust_robots)
+            .map(|k| {
+                let (server, set) = (&server, &sets[k]);
+                scope.spawn(move || {
+                    let session = peer(server);
+                    publish_twice(&session, "team", robots[k], set);
+                    session
+                })
+            })
+            .collect();
+        threads.into_iter().map(|t| t.join().unwrap()).collect()
     });
-    if let Some(mut child) = python_child {
-        assert!(child.wait().unwrap().success(), "the Python publisher failed");
-    }
     let info = wait_for(&mut client, "team", "6 puts of each robot", |i| {
         robots.iter().all(|r| source(i, r).is_some_and(|s| s.received == 6))
     })
     .await;
+    for s in sessions {
+        s.close().await.unwrap();
+    }
+    if let Some(mut child) = python_child {
+        drop(child.stdin.take()); // end of input: the Python peer closes and exits
+        assert!(child.wait().unwrap().success(), "the Python publisher failed");
+    }
     assert_eq!(info.version, 9, "every scan once");
     for r in robots {
         let s = source(&info, r).unwrap();

@@ -135,24 +135,28 @@ fn ingest(running: &Running, locator: &str, publishers: usize, sim: &[SimScan]) 
             .collect()
         })
         .collect();
-    let ready = std::sync::Barrier::new(publishers + 1);
+    // Everyone starts together; sessions stay open until the map has every scan (closing right
+    // after the puts may drop some still queued).
+    let (ready, done) = (std::sync::Barrier::new(publishers + 1), std::sync::Barrier::new(publishers + 1));
     let service = running.service.clone();
     std::thread::scope(|scope| -> Result<f64> {
         let handles: Vec<_> = shares
             .iter()
             .enumerate()
             .map(|(p, share)| {
-                let ready = &ready;
+                let (ready, done) = (&ready, &done);
                 scope.spawn(move || -> Result<()> {
-                    // Reach the barrier even when setting up fails, so nobody waits forever.
+                    // Every thread reaches both barriers, also when it fails.
                     let setup = publisher(locator, p);
                     ready.wait();
-                    let (session, publisher) = setup?;
-                    for scan in share {
-                        publisher.put(scan.clone()).wait().map_err(|e| anyhow::anyhow!("put: {e}"))?;
-                    }
-                    drop(publisher);
-                    let _ = session.close().wait();
+                    let sent = setup.and_then(|(session, publisher)| {
+                        for scan in share {
+                            publisher.put(scan.clone()).wait().map_err(|e| anyhow::anyhow!("put: {e}"))?;
+                        }
+                        Ok(session)
+                    });
+                    done.wait();
+                    let _ = sent?.close().wait();
                     Ok(())
                 })
             })
@@ -160,15 +164,19 @@ fn ingest(running: &Running, locator: &str, publishers: usize, sim: &[SimScan]) 
         ready.wait();
         let t0 = Instant::now();
         let want = sim.len() as u64;
-        while service.snapshot(MAP)?.version < want {
-            ensure!(t0.elapsed() < TIMEOUT, "ingest over zenoh did not finish");
-            std::thread::sleep(Duration::from_millis(1));
-        }
-        let elapsed = t0.elapsed().as_secs_f64();
+        let finished = loop {
+            match service.snapshot(MAP) {
+                Ok(s) if s.version >= want => break Ok(t0.elapsed().as_secs_f64()),
+                Ok(_) if t0.elapsed() > TIMEOUT => break Err(anyhow::anyhow!("ingest over zenoh did not finish")),
+                Ok(_) => std::thread::sleep(Duration::from_millis(1)),
+                Err(e) => break Err(e.into()),
+            }
+        };
+        done.wait();
         for h in handles {
             h.join().map_err(|_| anyhow::anyhow!("a publisher panicked"))??;
         }
-        Ok(elapsed)
+        finished
     })
 }
 

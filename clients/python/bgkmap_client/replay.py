@@ -18,7 +18,8 @@ bag directories. Each ``sensor_msgs/PointCloud2`` on the cloud topic becomes one
 
 Over gRPC every scan waits for its acknowledgement (``InsertScan``). Over zenoh it goes to the
 acknowledged ``bgkmap/<map>/ingest`` query, or with ``--no-ack`` is put on
-``bgkmap/<map>/scans/<source>`` (congestion control BLOCK). Non-finite points are sent: the
+``bgkmap/<map>/scans/<source>`` (congestion control BLOCK; one query at the end makes sure the
+puts reached the server before the session closes). Non-finite points are sent: the
 server drops and counts them. Prints a JSON summary; ``--dry-run`` prints each scan instead of
 sending it.
 """
@@ -184,7 +185,7 @@ class ZenohSink:
         conf.insert_json5("listen/endpoints", "[]")
         conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
         self.session = zenoh.open(conf)
-        self.ack = ack
+        self.ack, self.map, self.timeout_s = ack, map_name, timeout_s
         if ack:
             self.entity: Any = self.session.declare_querier(f"bgkmap/{map_name}/ingest", timeout=timeout_s)
         else:
@@ -212,6 +213,11 @@ class ZenohSink:
         raise BgkmapError("DEADLINE_EXCEEDED", "no reply from bgkmap/<map>/ingest", transport="zenoh")
 
     def close(self) -> None:
+        if not self.ack:
+            # Puts have no reply, and closing at once may drop those still queued. A query to the
+            # server travels behind them on the same link: its reply means they have arrived.
+            key = f"bgkmap/{self.map}/query/points"
+            list(self.session.get(key, payload=pb.QueryPointsRequest().SerializeToString(), timeout=self.timeout_s))
         self.session.close()
 
 
