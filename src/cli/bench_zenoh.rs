@@ -167,7 +167,9 @@ fn ingest(running: &Running, locator: &str, publishers: usize, sim: &[SimScan]) 
         let finished = loop {
             match service.snapshot(MAP) {
                 Ok(s) if s.version >= want => break Ok(t0.elapsed().as_secs_f64()),
-                Ok(_) if t0.elapsed() > TIMEOUT => break Err(anyhow::anyhow!("ingest over zenoh did not finish")),
+                Ok(_) if t0.elapsed() > TIMEOUT => {
+                    break Err(anyhow::anyhow!("ingest over zenoh did not finish"));
+                }
                 Ok(_) => std::thread::sleep(Duration::from_millis(1)),
                 Err(e) => break Err(e.into()),
             }

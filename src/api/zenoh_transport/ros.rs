@@ -14,15 +14,18 @@ use zenoh::pubsub::Subscriber;
 /// Messages waiting for the bridge's worker before the subscriptions block.
 const ROS_CHANNEL: usize = 64;
 
+/// How a subscription wraps its payloads for the bridge.
+type Wrap = fn(Vec<u8>) -> Incoming;
+
 /// The subscriptions of one bridge: (key, how to wrap the payload).
-fn subscriptions(cfg: &RosTopicConfig) -> Result<Vec<(String, fn(Vec<u8>) -> Incoming)>, ZenohError> {
+fn subscriptions(cfg: &RosTopicConfig) -> Result<Vec<(String, Wrap)>, ZenohError> {
     let key = |explicit: &Option<String>, topic: &str, type_name: &str| {
         explicit
             .clone()
             .or_else(|| topic_key(cfg.domain_id, topic, type_name))
             .ok_or_else(|| ZenohError::Config(format!("{topic:?} is not a ROS topic name")))
     };
-    let mut subs: Vec<(String, fn(Vec<u8>) -> Incoming)> =
+    let mut subs: Vec<(String, Wrap)> =
         vec![(key(&cfg.cloud_key, &cfg.cloud_topic, POINT_CLOUD2)?, Incoming::Cloud)];
     match cfg.pose {
         RosPose::Identity => {}
@@ -44,7 +47,7 @@ fn subscriptions(cfg: &RosTopicConfig) -> Result<Vec<(String, fn(Vec<u8>) -> Inc
 async fn subscribe(
     session: &zenoh::Session,
     key: &str,
-    wrap: fn(Vec<u8>) -> Incoming,
+    wrap: Wrap,
     tx: SyncSender<Incoming>,
 ) -> Result<Subscriber<()>, ZenohError> {
     session
