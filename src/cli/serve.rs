@@ -192,6 +192,8 @@ impl Running {
 
 /// Opens the data directory, binds both listeners and starts serving.
 pub async fn start(c: &ServerConfig) -> Result<Running> {
+    #[cfg(not(feature = "zenoh"))]
+    anyhow::ensure!(!c.zenoh.enabled, "zenoh is enabled but this bgkmap was built without the zenoh feature");
     let service_config = ServiceConfig {
         queue_capacity: c.queue_capacity,
         threads_per_scan: c.threads_per_scan,
@@ -247,13 +249,7 @@ pub async fn start(c: &ServerConfig) -> Result<Running> {
         Ok(Running { grpc_addr, http_addr, service, zenoh_locators, zenoh, tasks, stop })
     }
     #[cfg(not(feature = "zenoh"))]
-    {
-        anyhow::ensure!(
-            !c.zenoh.enabled,
-            "zenoh is enabled but this bgkmap was built without the zenoh feature"
-        );
-        Ok(Running { grpc_addr, http_addr, service, zenoh_locators: Vec::new(), tasks, stop })
-    }
+    Ok(Running { grpc_addr, http_addr, service, zenoh_locators: Vec::new(), tasks, stop })
 }
 
 /// Accepted connections with Nagle's algorithm off: small answers (single-point queries) must
