@@ -8,7 +8,7 @@
 #   BGKMAP_VENV       venv to (re)use        (default: $HOME/.cache/bgkmap/venv)
 #   CARGO_TARGET_DIR  where cargo built into (default: target); the binary is $CARGO_TARGET_DIR/debug/bgkmap
 #   BGKMAP_BIN        the server binary      (default: the one above)
-#   PYTHON            interpreter for the venv (default: python3, ≥ 3.9)
+#   PYTHON            interpreter for the venv (default: python3, ≥ 3.10: rosbags needs it)
 #   Extra arguments go to pytest, e.g. `bash tests/python.sh -k curl -v`.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -33,7 +33,7 @@ fi
 export PIP_DISABLE_PIP_VERSION_CHECK=1 PIP_NO_INPUT=1
 
 # The venv: created once, recreated if broken (e.g. its Python was removed).
-if ! "$venv/bin/python" -c 'import sys; assert sys.version_info >= (3, 9)' 2>/dev/null; then
+if ! "$venv/bin/python" -c 'import sys; assert sys.version_info >= (3, 10)' 2>/dev/null; then
   if [ -e "$venv" ] && [ ! -f "$venv/pyvenv.cfg" ] && [ -n "$(ls -A "$venv" 2>/dev/null)" ]; then
     echo "tests/python.sh: $venv exists and is not a venv; set BGKMAP_VENV elsewhere" >&2
     exit 1
