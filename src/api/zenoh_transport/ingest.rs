@@ -6,6 +6,8 @@
 //! `GetMap` and `/metrics`) and logged once per map, source and kind of fault; the session keeps
 //! going. A full writer queue is not a refusal: the worker waits and retries, which holds the
 //! subscriber's channel and, through TCP, the publisher (use `CongestionControl::Block` there).
+//! One worker serves every map, in arrival order: while one map's queue is full, puts to the
+//! others wait too (the acknowledged query has no such coupling).
 
 use super::ZenohError;
 use crate::api::calls::{ProtoCalls, scan_input};
