@@ -62,6 +62,7 @@ async fn concurrent_queries_see_whole_scans_only() {
         .map(|(i, s)| pb::InsertScanRequest {
             map: "m".into(),
             scan: Some(pb::Scan::world("robot", i as u64 + 1, s.origin, &s.points_world)),
+            wait_applied: true,
         })
         .collect();
     let summary = client.insert_scans(tokio_stream::iter(requests)).await.unwrap().into_inner();

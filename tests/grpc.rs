@@ -47,11 +47,13 @@ fn scan_msg(source: &str, seq: u64, s: &SimScan) -> pb::Scan {
         frame: pb::Frame::World as i32,
         xyz_f32: xyz_bytes(&s.points_world),
         max_range: None,
+        stamp_nanos: None,
     }
 }
 
 fn insert_req(map: &str, scan: pb::Scan) -> pb::InsertScanRequest {
-    pb::InsertScanRequest { map: map.into(), scan: Some(scan) }
+    // The tests compare with offline builds right after: answer once integrated.
+    pb::InsertScanRequest { map: map.into(), scan: Some(scan), wait_applied: true }
 }
 
 /// The map parameters every test uses: the defaults with `max_range: 8` set explicitly.
@@ -482,7 +484,7 @@ async fn bad_requests_are_refused_with_the_field_named_and_leave_the_map_unchang
         expect_err(client.insert_scan(insert_req("room", scan)).await, Code::InvalidArgument, &needles);
         assert_eq!(state_of(&mut client, "room").await, before);
     }
-    let no_scan = pb::InsertScanRequest { map: "room".into(), scan: None };
+    let no_scan = pb::InsertScanRequest { map: "room".into(), scan: None, wait_applied: false };
     expect_err(client.insert_scan(no_scan).await, Code::InvalidArgument, &["InsertScanRequest.scan"]);
 
     // Unknown map.

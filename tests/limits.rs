@@ -50,9 +50,12 @@ async fn oversized_messages_and_boxes_are_refused() {
         frame: pb::Frame::World as i32,
         xyz_f32: xyz,
         max_range: None,
+        stamp_nanos: None,
     };
-    let err =
-        client.insert_scan(pb::InsertScanRequest { map: "m".into(), scan: Some(scan) }).await.unwrap_err();
+    let err = client
+        .insert_scan(pb::InsertScanRequest { map: "m".into(), scan: Some(scan), wait_applied: false })
+        .await
+        .unwrap_err();
     assert_eq!(err.code(), tonic::Code::ResourceExhausted, "{err:?}");
     assert!(err.message().contains("limit of 1000000 bytes"), "{}", err.message());
 

@@ -193,8 +193,9 @@ async fn three_robots_fill_one_map_exactly_like_an_offline_build_of_all_their_sc
             .collect();
         threads.into_iter().map(|t| t.join().unwrap()).collect()
     });
-    let info = wait_for(&mut client, "team", "6 puts of each robot", |i| {
-        robots.iter().all(|r| source(i, r).is_some_and(|s| s.received == 6))
+    // Every put journaled (received) and every acknowledged scan integrated (none pending).
+    let info = wait_for(&mut client, "team", "6 puts of each robot, integrated", |i| {
+        robots.iter().all(|r| source(i, r).is_some_and(|s| s.received == 6 && s.pending == 0))
     })
     .await;
     for s in sessions {
@@ -247,19 +248,31 @@ async fn zenoh_ingest_is_acknowledged_and_zenoh_answers_equal_grpc_answers() {
     create_map(&mut client, "room").await;
     let session = peer(&server);
     let (_, sim) = bgkmap::sim::simulate(0, 3, &bgkmap::sim::Lidar::default());
-    for (i, s) in sim.iter().enumerate() {
-        let scan = pb::Scan::world("lidar", i as u64 + 1, s.origin, &s.points_world).encode_to_vec();
-        let ack = pb::InsertScanResponse::decode(
-            &*zget(&session, "bgkmap/room/ingest", scan.clone()).await.unwrap(),
-        );
-        assert_eq!(
-            ack.unwrap(),
-            pb::InsertScanResponse { applied: true, version: i as u64 + 1, dropped_points: 0 }
-        );
-        let again =
-            pb::InsertScanResponse::decode(&*zget(&session, "bgkmap/room/ingest", scan).await.unwrap());
-        assert!(!again.unwrap().applied, "a repeated scan is acknowledged as a duplicate");
+    let scans: Vec<Vec<u8>> = sim
+        .iter()
+        .enumerate()
+        .map(|(i, s)| pb::Scan::world("lidar", i as u64 + 1, s.origin, &s.points_world).encode_to_vec())
+        .collect();
+    let ack = |bytes: Vec<u8>| pb::InsertScanResponse::decode(&*bytes).unwrap();
+    // Read-your-writes: `?wait_applied` answers once the scan is integrated.
+    for (i, scan) in scans.iter().enumerate().take(2) {
+        let a = ack(zget(&session, "bgkmap/room/ingest?wait_applied", scan.clone()).await.unwrap());
+        assert_eq!(a, pb::InsertScanResponse { applied: true, version: i as u64 + 1, dropped_points: 0 });
+        let again = ack(zget(&session, "bgkmap/room/ingest", scan.clone()).await.unwrap());
+        assert!(!again.applied, "a repeated scan is acknowledged as a duplicate");
     }
+    // The plain acknowledgement means durable: a server killed right after it still has the
+    // scan once it restarts (the journal is replayed).
+    let a = ack(zget(&session, "bgkmap/room/ingest", scans[2].clone()).await.unwrap());
+    assert!(a.applied && a.version >= 2, "{a:?}");
+    session.close().await.unwrap();
+    server.kill();
+    let server = start_serve(&dir.path().join("data"), &ZENOH_FLAGS);
+    let mut client = grpc(&server).await;
+    assert_eq!(info(&mut client, "room").await.version, 3, "the acknowledged scan survived SIGKILL");
+    let session = peer(&server);
+    let again = ack(zget(&session, "bgkmap/room/ingest", scans[2].clone()).await.unwrap());
+    assert!(!again.applied, "after the restart the scan is still known: a duplicate");
     // Points over the room's lattice and beyond, a box, rays: byte-identical answers.
     let mut points = Vec::new();
     for x in 0..40 {

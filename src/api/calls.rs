@@ -1,19 +1,24 @@
-//! The protobuf calls shared by the two protobuf transports, gRPC ([`super::grpc`]) and zenoh:
-//! request message in, answer message out, so both answer identically by construction.
+//! The protobuf calls shared by the two protobuf transports, gRPC ([`super::grpc`]) and zenoh
+//! ([`super::zenoh_transport`]): request message in, answer message out, so both answer
+//! identically by construction (same validation, same exactly-once ingest, same query answers).
 //!
 //! Conversions (wire → core) name the proto field path in their `INVALID_ARGUMENT` errors
 //! (`bgkmap.v1.QueryPointsRequest.xyz_f32: length 13 is not a multiple of 12`); service errors go
 //! through [`to_grpc`], the one mapping of every transport. Queries read the map's current
-//! snapshot; heavy ones run on a blocking thread.
+//! snapshot (answers that depend on a corrupt block are `DATA_LOSS`); heavy ones run on a
+//! blocking thread.
 
 use super::grpc::GrpcConfig;
 use super::pb;
 use super::status::to_grpc;
 use crate::core::query::{BoxError, BoxQuery, RayHit, StopAt, cast_ray, count_box, query_box, query_points};
 use crate::core::{CellKey, CellState, PointFrame, Pose, Thresholds};
-use crate::service::{Ack, MapService, ScanInput, ServiceError, Snapshot};
+use crate::service::{Ack, MapService, ScanInput, ServiceError, Snapshot, SubmitOptions};
 use std::sync::Arc;
 use tonic::Status;
+
+/// Query points above which the work moves to a blocking thread.
+const INLINE_POINTS: usize = 10_000;
 
 /// The service and the limits of the protobuf transports (those of the gRPC port).
 #[derive(Debug, Clone)]
@@ -21,6 +26,9 @@ pub struct ProtoCalls {
     service: Arc<MapService>,
     config: GrpcConfig,
 }
+
+/// The outcome of a submitted scan, once known.
+pub type AckReceiver = tokio::sync::oneshot::Receiver<Result<Ack, ServiceError>>;
 
 impl ProtoCalls {
     pub fn new(service: Arc<MapService>, config: GrpcConfig) -> Self {
@@ -35,18 +43,18 @@ impl ProtoCalls {
         &self.config
     }
 
-    /// Submits one scan and waits until the writer has applied and stored it.
-    pub async fn insert(&self, map: &str, scan: ScanInput) -> Result<Ack, Status> {
+    /// Submits one scan (validated, then journaled by the service); the receiver gets its
+    /// outcome once it is durable or, with `wait_applied`, integrated.
+    pub fn submit(&self, map: &str, scan: ScanInput, wait_applied: bool) -> Result<AckReceiver, Status> {
         let (tx, rx) = tokio::sync::oneshot::channel();
-        self.service
-            .submit_scan(
-                map,
-                scan,
-                Box::new(move |r| {
-                    let _ = tx.send(r);
-                }),
-            )
-            .map_err(service_err)?;
+        let options = SubmitOptions { wait_applied };
+        self.service.submit(map, scan, options, Box::new(move |r| drop(tx.send(r)))).map_err(service_err)?;
+        Ok(rx)
+    }
+
+    /// Submits one scan and waits until it is durable (or, with `wait_applied`, integrated).
+    pub async fn insert(&self, map: &str, scan: ScanInput, wait_applied: bool) -> Result<Ack, Status> {
+        let rx = self.submit(map, scan, wait_applied)?;
         match rx.await {
             Ok(r) => r.map_err(service_err),
             Err(_) => Err(service_err(ServiceError::ShuttingDown)),
@@ -68,6 +76,7 @@ impl ProtoCalls {
             }
             points.push(p.map(f64::from));
         }
+        snap.check_points(&points).map_err(service_err)?;
         let limit = self.config.max_message_bytes;
         let answer = compute(points.len() > INLINE_POINTS, move || {
             let out = query_points_answer(&snap, &points, &th)?;
@@ -87,6 +96,7 @@ impl ProtoCalls {
             bad("QueryBoxRequest.coarsen", format!("must be at most 10, got {}", req.coarsen))
         })?;
         let q = BoxQuery { min_world, max_world, state, coarsen };
+        snap.check_box(min_world, max_world).map_err(service_err)?;
         let (max_cells, limit, counts_only) =
             (self.config.max_box_cells, self.config.max_message_bytes, req.counts_only);
         let answer = compute(true, move || {
@@ -122,9 +132,6 @@ impl ProtoCalls {
         Ok(answer)
     }
 }
-
-/// Query points above which the work moves to a blocking thread.
-const INLINE_POINTS: usize = 10_000;
 
 /// `INVALID_ARGUMENT` naming `bgkmap.v1.<field>`.
 pub(super) fn bad(field: &str, reason: impl std::fmt::Display) -> Status {
@@ -192,6 +199,7 @@ pub(super) fn scan_input(scan: Option<pb::Scan>) -> Result<ScanInput, Status> {
         frame,
         points: xyz_f32(&scan.xyz_f32, "Scan.xyz_f32")?,
         max_range_m: scan.max_range,
+        stamp_nanos: scan.stamp_nanos,
     })
 }
 
@@ -319,9 +327,15 @@ fn cast_rays_answer(
     th: &Thresholds,
 ) -> Result<pb::CastRaysResponse, Status> {
     let mut results = Vec::with_capacity(rays.len());
+    let res = snap.map.params().resolution_m;
     for (i, r) in rays.iter().enumerate() {
         let hit = cast_ray(&snap.map, r.origin, r.direction, r.max_range, stop, th)
             .map_err(|e| bad(&format!("CastRaysRequest.rays[{i}]"), e))?;
+        let reach = match hit {
+            RayHit::Clear => r.max_range,
+            RayHit::Blocked { distance_m, .. } => distance_m + res * 3f64.sqrt(),
+        };
+        snap.check_ray(r.origin, r.direction, reach, &format!("ray {i}")).map_err(service_err)?;
         results.push(match hit {
             RayHit::Clear => pb::RayResult { blocked: false, distance: r.max_range, ..Default::default() },
             RayHit::Blocked { cell, distance_m, estimate } => pb::RayResult {

@@ -3,12 +3,10 @@
 //!
 //! The handlers are thin: each converts its request (wire types stop here), calls the
 //! [`MapService`] or a read-only query of [`crate::core::query`] on the map's current snapshot,
-//! and converts the answer back; scans and queries go through [`super::calls`], which the zenoh
-//! transport shares. Malformed requests are `INVALID_ARGUMENT` with a message that
+//! and converts the answer back. Malformed requests are `INVALID_ARGUMENT` with a message that
 //! starts with the proto field path (`bgkmap.v1.Scan.xyz_f32: length 13 is not a multiple of
-//! 12`); every service error goes through [`super::status::to_grpc`], so the codes are those of
-//! every other transport (unknown map `NOT_FOUND`, a full queue `RESOURCE_EXHAUSTED` with
-//! `retry-after-ms`).
+//! 12`); every service error goes through [`super::status::to_grpc`], so the codes are those of every other
+//! transport (unknown map `NOT_FOUND`, a full queue `RESOURCE_EXHAUSTED` with `retry-after-ms`).
 //!
 //! Conventions beyond the proto comments:
 //! - Query answers carry `version`, the number of scans in the snapshot they were computed on.
@@ -18,15 +16,17 @@
 //!   refused with `INVALID_ARGUMENT` instead of failing on the wire.
 //! - `Export` streams cells with evidence sorted by key (x, then y, then z) in chunks of at most
 //!   [`EXPORT_CHUNK_CELLS`] cells, always at least one chunk (so `resolution` is known).
-//! - `InsertScans` applies its scans in order, each before the next is read, so a failure
-//!   (reported as `request i: …` with the original code) leaves exactly the earlier ones applied.
+//! - `InsertScan` answers once the scan is durable in the journal (`version` is then the map
+//!   version at that moment), or with `wait_applied` once it is integrated.
+//! - `InsertScans` submits its scans in order with up to 32 in flight; a failure (reported as `request i: …` with the original code) means every
+//!   earlier scan is durable (later ones may be: resending is safe).
+//! - Answers that depend on a corrupt block are `DATA_LOSS`; other queries are answered.
 
-use super::calls::{ProtoCalls, bad, push_key, scan_input, service_err, thresholds, vec3};
 use super::pb;
 use super::pb::map_service_server::MapServiceServer;
 use crate::core::key::BLOCK_CELLS;
 use crate::core::{CellKey, MapParams, RangeMode, Thresholds};
-use crate::service::{MapInfo, MapService, Snapshot};
+use crate::service::{MapInfo, MapService, ScanInput, Snapshot};
 use std::pin::Pin;
 use std::sync::Arc;
 use std::task::{Context, Poll};
@@ -53,12 +53,13 @@ pub const EXPORT_CHUNK_CELLS: usize = 65_536;
 /// The `bgkmap.v1.MapService` implementation.
 #[derive(Debug, Clone)]
 pub struct MapGrpc {
-    calls: ProtoCalls,
+    service: Arc<MapService>,
+    config: GrpcConfig,
 }
 
 impl MapGrpc {
     pub fn new(service: Arc<MapService>, config: GrpcConfig) -> Self {
-        Self { calls: ProtoCalls::new(service, config) }
+        Self { service, config }
     }
 }
 
@@ -99,7 +100,10 @@ pub async fn routes_with_health(
 }
 
 // ---------------------------------------------------------------------------------------------
-// Conversions (wire → core). Errors name the proto field path.
+// Conversions (wire → core) shared with zenoh live in `super::calls`; these are gRPC's own.
+
+use super::calls::{ProtoCalls, push_key, thresholds};
+pub(super) use super::calls::{bad, scan_input, service_err, vec3};
 
 fn map_params(p: Option<pb::MapParams>) -> Result<MapParams, Status> {
     let p = p.unwrap_or_default();
@@ -157,6 +161,10 @@ fn map_info_to_pb(info: MapInfo) -> pb::MapInfo {
         blocks: info.blocks as u64,
         cells_with_evidence: info.cells_with_evidence as u64,
         queued: info.queued as u64,
+        scans: info.scans,
+        journal_bytes: info.journal_bytes,
+        corrupt_blocks: info.corrupt_blocks as u64,
+        read_only: info.read_only.unwrap_or_default(),
         sources: info
             .sources
             .into_iter()
@@ -167,6 +175,10 @@ fn map_info_to_pb(info: MapInfo) -> pb::MapInfo {
                 duplicates: s.duplicates,
                 rejected: s.rejected,
                 highest_seq: s.highest_seq,
+                pending: s.pending,
+                gaps: s.gaps,
+                pruned: s.pruned,
+                retracted: s.retracted,
                 dropped_points: s.dropped_points,
             })
             .collect(),
@@ -175,6 +187,27 @@ fn map_info_to_pb(info: MapInfo) -> pb::MapInfo {
 
 // ---------------------------------------------------------------------------------------------
 // Handlers.
+
+impl MapGrpc {
+    /// The calls shared with zenoh, over this port's service and limits.
+    fn calls(&self) -> ProtoCalls {
+        ProtoCalls::new(self.service.clone(), self.config.clone())
+    }
+
+    /// Submits one scan; the receiver gets its outcome.
+    pub(super) fn submit(
+        &self,
+        map: &str,
+        scan: ScanInput,
+        wait_applied: bool,
+    ) -> Result<super::calls::AckReceiver, Status> {
+        self.calls().submit(map, scan, wait_applied)
+    }
+
+    fn snapshot(&self, map: &str) -> Result<Arc<Snapshot>, Status> {
+        self.service.snapshot(map).map_err(service_err)
+    }
+}
 
 /// Sends every cell with evidence (inside `[lo, hi]` keys, if given) sorted by key, in chunks.
 /// Blocks come sorted by block key, so all cells of one block-x slab precede the next slab's:
@@ -259,7 +292,7 @@ impl pb::map_service_server::MapService for MapGrpc {
     ) -> Result<Response<pb::MapInfo>, Status> {
         let req = request.into_inner();
         let params = map_params(req.params)?;
-        let info = self.calls.service().create_map(&req.map, params).map_err(service_err)?;
+        let info = self.service.create_map(&req.map, params).map_err(service_err)?;
         Ok(Response::new(map_info_to_pb(info)))
     }
 
@@ -267,12 +300,12 @@ impl pb::map_service_server::MapService for MapGrpc {
         &self,
         _request: Request<pb::ListMapsRequest>,
     ) -> Result<Response<pb::ListMapsResponse>, Status> {
-        let maps = self.calls.service().list_maps().into_iter().map(map_info_to_pb).collect();
+        let maps = self.service.list_maps().into_iter().map(map_info_to_pb).collect();
         Ok(Response::new(pb::ListMapsResponse { maps }))
     }
 
     async fn get_map(&self, request: Request<pb::GetMapRequest>) -> Result<Response<pb::MapInfo>, Status> {
-        let info = self.calls.service().map_info(&request.into_inner().map).map_err(service_err)?;
+        let info = self.service.map_info(&request.into_inner().map).map_err(service_err)?;
         Ok(Response::new(map_info_to_pb(info)))
     }
 
@@ -282,7 +315,7 @@ impl pb::map_service_server::MapService for MapGrpc {
     ) -> Result<Response<pb::InsertScanResponse>, Status> {
         let req = request.into_inner();
         let scan = scan_input(req.scan)?;
-        let ack = self.calls.insert(&req.map, scan).await?;
+        let ack = self.calls().insert(&req.map, scan, req.wait_applied).await?;
         Ok(Response::new(pb::InsertScanResponse {
             applied: ack.applied,
             version: ack.version,
@@ -294,59 +327,35 @@ impl pb::map_service_server::MapService for MapGrpc {
         &self,
         request: Request<Streaming<pb::InsertScanRequest>>,
     ) -> Result<Response<pb::InsertScansResponse>, Status> {
-        let mut stream = request.into_inner();
-        let mut summary = pb::InsertScansResponse::default();
-        let mut index = 0u64;
-        while let Some(req) = stream.message().await? {
-            let outcome = match scan_input(req.scan) {
-                Ok(scan) => self.calls.insert(&req.map, scan).await,
-                Err(e) => Err(e),
-            };
-            let ack = outcome.map_err(|s| {
-                Status::with_metadata(
-                    s.code(),
-                    format!("request {index}: {}", s.message()),
-                    s.metadata().clone(),
-                )
-            })?;
-            summary.scans += 1;
-            if ack.applied {
-                summary.applied += 1;
-            } else {
-                summary.duplicates += 1;
-            }
-            summary.version = ack.version;
-            index += 1;
-        }
-        Ok(Response::new(summary))
+        super::grpc_ops::insert_scans(self, request.into_inner()).await.map(Response::new)
     }
 
     async fn query_points(
         &self,
         request: Request<pb::QueryPointsRequest>,
     ) -> Result<Response<pb::QueryPointsResponse>, Status> {
-        self.calls.query_points(request.into_inner()).await.map(Response::new)
+        self.calls().query_points(request.into_inner()).await.map(Response::new)
     }
 
     async fn query_box(
         &self,
         request: Request<pb::QueryBoxRequest>,
     ) -> Result<Response<pb::QueryBoxResponse>, Status> {
-        self.calls.query_box(request.into_inner()).await.map(Response::new)
+        self.calls().query_box(request.into_inner()).await.map(Response::new)
     }
 
     async fn cast_rays(
         &self,
         request: Request<pb::CastRaysRequest>,
     ) -> Result<Response<pb::CastRaysResponse>, Status> {
-        self.calls.cast_rays(request.into_inner()).await.map(Response::new)
+        self.calls().cast_rays(request.into_inner()).await.map(Response::new)
     }
 
     type ExportStream = ExportChunks;
 
     async fn export(&self, request: Request<pb::ExportRequest>) -> Result<Response<ExportChunks>, Status> {
         let req = request.into_inner();
-        let snap = self.calls.snapshot(&req.map)?;
+        let snap = self.snapshot(&req.map)?;
         let th = thresholds(req.thresholds, snap.map.params().thresholds, "ExportRequest.thresholds")?;
         let bounds = if req.min.is_empty() && req.max.is_empty() {
             None
@@ -355,7 +364,10 @@ impl pb::map_service_server::MapService for MapGrpc {
             let min = vec3(&req.min, "ExportRequest.min")?;
             let max = vec3(&req.max, "ExportRequest.max")?;
             match (CellKey::from_point(min, res), CellKey::from_point(max, res)) {
-                (Some(lo), Some(hi)) if lo.x <= hi.x && lo.y <= hi.y && lo.z <= hi.z => Some((lo, hi)),
+                (Some(lo), Some(hi)) if lo.x <= hi.x && lo.y <= hi.y && lo.z <= hi.z => {
+                    snap.check_cells(lo, hi).map_err(service_err)?;
+                    Some((lo, hi))
+                }
                 _ => {
                     return Err(bad(
                         "ExportRequest.min",
@@ -364,9 +376,33 @@ impl pb::map_service_server::MapService for MapGrpc {
                 }
             }
         };
+        if bounds.is_none() {
+            snap.check_whole().map_err(service_err)?;
+        }
         let (tx, rx) = tokio::sync::mpsc::channel(4);
         tokio::task::spawn_blocking(move || export_cells(&snap, bounds, &th, &tx));
         Ok(Response::new(ExportChunks(rx)))
+    }
+
+    async fn merge_map(
+        &self,
+        request: Request<pb::MergeMapRequest>,
+    ) -> Result<Response<pb::MapChange>, Status> {
+        super::grpc_ops::merge_map(&self.service, request.into_inner()).await.map(Response::new)
+    }
+
+    async fn retract_scans(
+        &self,
+        request: Request<pb::RetractScansRequest>,
+    ) -> Result<Response<pb::MapChange>, Status> {
+        super::grpc_ops::retract_scans(&self.service, request.into_inner()).await.map(Response::new)
+    }
+
+    async fn repose_scans(
+        &self,
+        request: Request<pb::ReposeScansRequest>,
+    ) -> Result<Response<pb::MapChange>, Status> {
+        super::grpc_ops::repose_scans(&self.service, request.into_inner()).await.map(Response::new)
     }
 }
 

@@ -43,8 +43,8 @@ struct Counters {
 }
 
 #[derive(Clone)]
-struct AppState {
-    service: Arc<MapService>,
+pub(super) struct AppState {
+    pub(super) service: Arc<MapService>,
     config: HttpConfig,
     counters: Arc<Counters>,
 }
@@ -54,8 +54,12 @@ struct AppState {
 pub struct ApiError(StatusCode, String);
 
 impl ApiError {
-    fn bad(msg: impl Into<String>) -> Self {
+    pub(super) fn bad(msg: impl Into<String>) -> Self {
         Self(StatusCode::BAD_REQUEST, msg.into())
+    }
+
+    pub(super) fn internal(msg: impl Into<String>) -> Self {
+        Self(StatusCode::INTERNAL_SERVER_ERROR, msg.into())
     }
 }
 
@@ -75,7 +79,21 @@ impl IntoResponse for ApiError {
     }
 }
 
-type ApiResult = Result<Response, ApiError>;
+pub(super) type ApiResult = Result<Response, ApiError>;
+
+/// `/readyz`: 200 `ready`, or 503 `degraded` with one line per map that refuses ingest (queries
+/// still work; `/healthz` stays 200).
+async fn readyz(State(st): State<AppState>) -> Response {
+    let degraded = st.service.degraded();
+    if degraded.is_empty() {
+        return "ready\n".into_response();
+    }
+    let mut body = String::from("degraded\n");
+    for (map, reason) in degraded {
+        body.push_str(&format!("map {map}: read-only: {reason}\n"));
+    }
+    (StatusCode::SERVICE_UNAVAILABLE, body).into_response()
+}
 
 /// The HTTP router.
 pub fn router(service: Arc<MapService>, config: HttpConfig) -> Router {
@@ -83,7 +101,7 @@ pub fn router(service: Arc<MapService>, config: HttpConfig) -> Router {
     let state = AppState { service, config, counters: Arc::default() };
     Router::new()
         .route("/healthz", get(|| async { "ok\n" }))
-        .route("/readyz", get(|| async { "ready\n" }))
+        .route("/readyz", get(readyz))
         .route("/metrics", get(metrics))
         .route("/v1/maps", get(list_maps))
         .route("/v1/maps/{map}", get(get_map).put(create_map))
@@ -91,11 +109,14 @@ pub fn router(service: Arc<MapService>, config: HttpConfig) -> Router {
         .route("/v1/maps/{map}/query/points", post(points_query))
         .route("/v1/maps/{map}/query/box", post(box_query))
         .route("/v1/maps/{map}/query/rays", post(rays_query))
+        .route("/v1/maps/{map}/merge", post(super::http_ops::merge))
+        .route("/v1/maps/{map}/retract", post(super::http_ops::retract))
+        .route("/v1/maps/{map}/repose", post(super::http_ops::repose))
         .layer(DefaultBodyLimit::max(limit))
         .with_state(state)
 }
 
-fn parse<T: serde::de::DeserializeOwned>(body: &Bytes) -> Result<T, ApiError> {
+pub(super) fn parse<T: serde::de::DeserializeOwned>(body: &Bytes) -> Result<T, ApiError> {
     serde_json::from_slice(body).map_err(|e| ApiError::bad(format!("invalid JSON body: {e}")))
 }
 
@@ -105,7 +126,8 @@ fn info_json(i: &MapInfo) -> Value {
         .iter()
         .map(|(k, s)| {
             let v = json!({"received": s.received, "applied": s.applied, "duplicates": s.duplicates,
-                           "rejected": s.rejected, "highest_seq": s.highest_seq,
+                           "rejected": s.rejected, "highest_seq": s.highest_seq, "pending": s.pending,
+                           "gaps": s.gaps, "pruned": s.pruned, "retracted": s.retracted,
                            "dropped_points": s.dropped_points});
             (k.clone(), v)
         })
@@ -119,8 +141,9 @@ fn info_json(i: &MapInfo) -> Value {
             (k.to_string(), value.unwrap_or(Value::String(v)))
         })
         .collect();
-    json!({"map": i.name, "params": params, "version": i.version, "blocks": i.blocks,
-           "cells_with_evidence": i.cells_with_evidence, "queued": i.queued, "sources": sources})
+    json!({"map": i.name, "params": params, "version": i.version, "scans": i.scans, "blocks": i.blocks,
+           "cells_with_evidence": i.cells_with_evidence, "queued": i.queued, "sources": sources,
+           "journal_bytes": i.journal_bytes, "corrupt_blocks": i.corrupt_blocks, "read_only": i.read_only})
 }
 
 async fn list_maps(State(st): State<AppState>) -> ApiResult {
@@ -202,6 +225,8 @@ struct ScanJson {
     points: Vec<[f32; 3]>,
     #[serde(default)]
     max_range: Option<f64>,
+    #[serde(default)]
+    stamp_nanos: Option<i64>,
 }
 
 fn parse_frame(s: Option<&str>) -> Result<PointFrame, ApiError> {
@@ -224,8 +249,16 @@ async fn insert_scan(
         .and_then(|v| v.to_str().ok())
         .is_some_and(|v| v.starts_with("application/x-pcd"));
     let scan = if is_pcd { scan_from_pcd_body(&q, &body)? } else { scan_from_json(&body)? };
+    let wait_applied = match q.get("wait_applied").map(String::as_str) {
+        None | Some("false" | "0") => false,
+        Some("true" | "1" | "") => true,
+        Some(other) => {
+            return Err(ApiError::bad(format!("query parameter wait_applied: {other:?} is not true|false")));
+        }
+    };
     let (tx, rx) = tokio::sync::oneshot::channel();
-    st.service.submit_scan(&map, scan, Box::new(move |r| drop(tx.send(r))))?;
+    let options = crate::service::SubmitOptions { wait_applied };
+    st.service.submit(&map, scan, options, Box::new(move |r| drop(tx.send(r))))?;
     let ack = rx.await.map_err(|_| ServiceError::ShuttingDown)??;
     Ok(axum::Json(
         json!({"applied": ack.applied, "version": ack.version, "dropped_points": ack.dropped_points}),
@@ -242,6 +275,7 @@ fn scan_from_json(body: &Bytes) -> Result<ScanInput, ApiError> {
         world_from_sensor: Pose { translation_m: s.pose.translation, rotation_wxyz: s.pose.rotation },
         points: s.points,
         max_range_m: s.max_range,
+        stamp_nanos: s.stamp_nanos,
     })
 }
 
@@ -261,6 +295,12 @@ fn scan_from_pcd_body(q: &HashMap<String, String>, body: &Bytes) -> Result<ScanI
             Some(v.parse::<f64>().map_err(|_| ApiError::bad("query parameter max_range must be a number"))?)
         }
     };
+    let stamp_nanos = match q.get("stamp_nanos") {
+        None => None,
+        Some(v) => Some(
+            v.parse::<i64>().map_err(|_| ApiError::bad("query parameter stamp_nanos must be an integer"))?,
+        ),
+    };
     let cloud = read_pcd(body).map_err(|e| ApiError::bad(e.to_string()))?;
     let vp =
         cloud.viewpoint.ok_or_else(|| ApiError::bad("the PCD has no VIEWPOINT line (the sensor pose)"))?;
@@ -274,6 +314,7 @@ fn scan_from_pcd_body(q: &HashMap<String, String>, body: &Bytes) -> Result<ScanI
         frame: parse_frame(q.get("frame").map(String::as_str))?,
         points: cloud.points,
         max_range_m: max_range,
+        stamp_nanos,
     })
 }
 
@@ -317,6 +358,7 @@ async fn points_query(State(st): State<AppState>, Path(map): Path<String>, body:
     if let Some(i) = q.points.iter().position(|p| !p.iter().all(|v| v.is_finite())) {
         return Err(ApiError::bad(format!("points[{i}]: coordinates must be finite")));
     }
+    snap.check_points(&q.points)?;
     let answers = query_points(&snap.map, &q.points, &th);
     let mut results = Vec::with_capacity(answers.len());
     for (i, a) in answers.iter().enumerate() {
@@ -358,6 +400,7 @@ async fn box_query(State(st): State<AppState>, Path(map): Path<String>, body: By
     let th = ThresholdsJson::resolve(&q.thresholds, snap.map.params().thresholds)?;
     let state = q.state.as_deref().map(parse_state).transpose()?;
     let bq = BoxQuery { min_world: q.min, max_world: q.max, state, coarsen: q.coarsen };
+    snap.check_box(q.min, q.max)?;
     // A box over the limit is a bad request (400, as gRPC's INVALID_ARGUMENT); the message
     // gives the limit.
     let cells = query_box(&snap.map, &bq, &th, st.config.max_box_cells)
@@ -410,6 +453,11 @@ async fn rays_query(State(st): State<AppState>, Path(map): Path<String>, body: B
     for (i, r) in q.rays.iter().enumerate() {
         let hit = cast_ray(&snap.map, r.origin, r.direction, r.max_range, stop, &th)
             .map_err(|e: RayError| ApiError::bad(format!("rays[{i}]: {e}")))?;
+        let reach = match hit {
+            RayHit::Clear => r.max_range,
+            RayHit::Blocked { distance_m, .. } => distance_m + snap.map.params().resolution_m * 3f64.sqrt(),
+        };
+        snap.check_ray(r.origin, r.direction, reach, &format!("rays[{i}]"))?;
         results.push(match hit {
             RayHit::Clear => json!({"blocked": false, "verdict": "clear"}),
             RayHit::Blocked { cell, distance_m, estimate } => json!({"blocked": true, "verdict": "blocked",
@@ -466,9 +514,16 @@ async fn metrics(State(st): State<AppState>) -> Response {
     }
     let _ = writeln!(out, "# TYPE bgkmap_queue_depth gauge");
     let _ = writeln!(out, "# TYPE bgkmap_map_version gauge");
+    let _ = writeln!(out, "# TYPE bgkmap_journal_bytes gauge");
+    let _ = writeln!(out, "# TYPE bgkmap_corrupt_blocks gauge");
+    let _ = writeln!(out, "# TYPE bgkmap_map_read_only gauge");
     for i in &maps {
         let _ = writeln!(out, "bgkmap_queue_depth{{map=\"{}\"}} {}", i.name, i.queued);
         let _ = writeln!(out, "bgkmap_map_version{{map=\"{}\"}} {}", i.name, i.version);
+        let _ = writeln!(out, "bgkmap_journal_bytes{{map=\"{}\"}} {}", i.name, i.journal_bytes);
+        let _ = writeln!(out, "bgkmap_corrupt_blocks{{map=\"{}\"}} {}", i.name, i.corrupt_blocks);
+        let _ =
+            writeln!(out, "bgkmap_map_read_only{{map=\"{}\"}} {}", i.name, u8::from(i.read_only.is_some()));
     }
     let _ = writeln!(out, "# TYPE bgkmap_http_queries_total counter");
     let _ = writeln!(out, "# TYPE bgkmap_http_query_seconds_total counter");

@@ -16,7 +16,9 @@ pub mod pb {
 pub mod calls;
 pub mod codec;
 pub mod grpc;
+mod grpc_ops;
 pub mod http;
+mod http_ops;
 pub mod status;
 pub mod zenoh_transport;
 
@@ -34,6 +36,7 @@ impl pb::Scan {
             frame: pb::Frame::World as i32,
             xyz_f32: pack_xyz(points_world),
             max_range: None,
+            stamp_nanos: None,
         }
     }
 }

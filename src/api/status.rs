@@ -1,4 +1,16 @@
 //! The one mapping from service errors to gRPC codes and HTTP statuses.
+//!
+//! | error | gRPC | HTTP |
+//! |---|---|---|
+//! | unknown map / scans | `NOT_FOUND` | 404 |
+//! | map exists | `ALREADY_EXISTS` | 409 |
+//! | bad request | `INVALID_ARGUMENT` | 400 |
+//! | queue full | `RESOURCE_EXHAUSTED` (+ `retry-after-ms`) | 429 (+ `Retry-After`) |
+//! | map read-only after a failed write, or damaged | `UNAVAILABLE` | 503 |
+//! | cannot be done exactly (raw scans pruned, conflicting scans) | `FAILED_PRECONDITION` | 412 |
+//! | corrupt block or journal record | `DATA_LOSS` | 500 |
+//! | shutting down | `UNAVAILABLE` | 503 |
+//! | other storage failure | `INTERNAL` | 500 |
 
 use crate::service::ServiceError;
 
@@ -6,11 +18,13 @@ use crate::service::ServiceError;
 pub fn to_grpc(e: &ServiceError) -> tonic::Status {
     use tonic::Code;
     let code = match e {
-        ServiceError::NotFound(_) => Code::NotFound,
+        ServiceError::NotFound(_) | ServiceError::ScansNotFound(_) => Code::NotFound,
         ServiceError::AlreadyExists(_) => Code::AlreadyExists,
         ServiceError::InvalidArgument { .. } => Code::InvalidArgument,
         ServiceError::Busy { .. } => Code::ResourceExhausted,
-        ServiceError::ShuttingDown => Code::Unavailable,
+        ServiceError::ReadOnly { .. } | ServiceError::ShuttingDown => Code::Unavailable,
+        ServiceError::Precondition(_) => Code::FailedPrecondition,
+        ServiceError::DataLoss(_) => Code::DataLoss,
         ServiceError::Storage(_) => Code::Internal,
     };
     let mut status = tonic::Status::new(code, e.to_string());
@@ -25,11 +39,12 @@ pub fn to_grpc(e: &ServiceError) -> tonic::Status {
 /// HTTP status code for a service error.
 pub fn http_code(e: &ServiceError) -> u16 {
     match e {
-        ServiceError::NotFound(_) => 404,
+        ServiceError::NotFound(_) | ServiceError::ScansNotFound(_) => 404,
         ServiceError::AlreadyExists(_) => 409,
+        ServiceError::Precondition(_) => 412,
         ServiceError::InvalidArgument { .. } => 400,
         ServiceError::Busy { .. } => 429,
-        ServiceError::ShuttingDown => 503,
-        ServiceError::Storage(_) => 500,
+        ServiceError::ReadOnly { .. } | ServiceError::ShuttingDown => 503,
+        ServiceError::DataLoss(_) | ServiceError::Storage(_) => 500,
     }
 }

@@ -139,6 +139,36 @@ pub fn load_scan(path: &Path, args: &ScanArgs) -> Result<Scan> {
     Ok(scan)
 }
 
+/// Reads one PCD file as the raw scan a map journals: points in the given frame as stored in the
+/// file, pose = VIEWPOINT (translation replaced by `--origin`), identity rotation when the file
+/// has none. Returns it with the number of non-finite points dropped.
+pub fn load_raw_scan(path: &Path, args: &ScanArgs) -> Result<(crate::core::RawScan, usize)> {
+    let bytes = std::fs::read(path).with_context(|| format!("{}: cannot read", path.display()))?;
+    let cloud = read_pcd(&bytes).with_context(|| format!("{}", path.display()))?;
+    let vp = cloud.viewpoint;
+    let translation_m = match (args.origin, vp) {
+        (Some(o), _) => o,
+        (None, Some(v)) => [v[0], v[1], v[2]],
+        (None, None) => bail!(
+            "{}: no sensor origin: the PCD file has no VIEWPOINT line (give --origin X,Y,Z)",
+            path.display()
+        ),
+    };
+    let rotation_wxyz = vp.map_or([1.0, 0.0, 0.0, 0.0], |v| [v[3], v[4], v[5], v[6]]);
+    let pose = crate::core::Pose { translation_m, rotation_wxyz };
+    pose.validate().with_context(|| format!("{}: VIEWPOINT", path.display()))?;
+    if cloud.points.is_empty() {
+        bail!("{}: the scan has no finite points", path.display());
+    }
+    let raw = crate::core::RawScan {
+        frame: args.frame,
+        world_from_sensor: pose,
+        points: cloud.points,
+        max_range_m: None,
+    };
+    Ok((raw, cloud.dropped_nonfinite))
+}
+
 /// Writes `bytes` to `path` atomically (temporary sibling + rename), or to stdout for `None`.
 pub fn write_output(path: Option<&PathBuf>, bytes: &[u8]) -> Result<()> {
     use std::io::Write;

@@ -20,6 +20,12 @@ pub enum BenchCommand {
     /// point-query throughput over zenoh next to gRPC.
     #[cfg(feature = "zenoh")]
     Zenoh(super::bench_zenoh::ZenohBenchArgs),
+    /// Durable maps: ingest acknowledged after fsync, restart time and memory of a large map,
+    /// exact merge of two.
+    #[cfg(feature = "server")]
+    Durable(super::bench_durable::DurableBenchArgs),
+    /// Opens a data directory as a restarting server does: time and memory.
+    Restart(super::bench_maps::RestartArgs),
 }
 
 #[derive(Debug, Args)]
@@ -52,6 +58,9 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
         BenchCommand::Server(a) => super::bench_server::run(a),
         #[cfg(feature = "zenoh")]
         BenchCommand::Zenoh(a) => super::bench_zenoh::run(a),
+        #[cfg(feature = "server")]
+        BenchCommand::Durable(a) => super::bench_durable::run(a),
+        BenchCommand::Restart(a) => super::bench_maps::run_restart(a),
     }
 }
 

@@ -182,6 +182,8 @@ fn scan_request(source: &str, seq: u64, s: &SimScan) -> pb::InsertScanRequest {
     pb::InsertScanRequest {
         map: MAP.into(),
         scan: Some(pb::Scan::world(source, seq, s.origin, &s.points_world)),
+        // Ingest is measured end to end: acknowledged once integrated and stored.
+        wait_applied: true,
     }
 }
 

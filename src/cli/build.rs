@@ -1,11 +1,11 @@
 //! `bgkmap build` and `bgkmap merge`.
 
-use super::args::{ParamArgs, ScanArgs, load_scan, progress};
+use super::args::{ParamArgs, ScanArgs, load_raw_scan, load_scan, progress};
 use crate::core::{EvidenceMap, Integrator};
-use crate::store::{load_map, save_map};
+use crate::store::{DurableMap, MapReader, NewScan, lock, now_nanos, save_map_with_scans, temp_sibling};
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 #[derive(Debug, Args)]
 pub struct BuildArgs {
@@ -19,6 +19,14 @@ pub struct BuildArgs {
     /// Threads per scan (results are bit-identical for any count).
     #[arg(long, default_value_t = 1)]
     pub threads: usize,
+    /// Journal the scans as (SOURCE, FIRST_SEQ + i) with their raw points, so the map can be
+    /// merged exactly with maps sharing scans, and scans retracted or re-posed. Without it the
+    /// map holds evidence only.
+    #[arg(long)]
+    pub source: Option<String>,
+    /// Sequence number of the first scan (with --source).
+    #[arg(long, default_value_t = 1, requires = "source")]
+    pub first_seq: u64,
     /// PCD scans, integrated in the order given.
     #[arg(required = true)]
     pub scans: Vec<PathBuf>,
@@ -30,18 +38,42 @@ pub fn run_build(a: BuildArgs) -> Result<()> {
     let mut integrator = Integrator::new(params);
     let bar = progress(a.scans.len() as u64, "build");
     let mut dropped = 0;
-    for path in &a.scans {
-        let scan = load_scan(path, &a.scan)?;
-        dropped += scan.dropped_nonfinite;
-        integrator.integrate(&mut map, &scan.points_world, scan.origin_world, a.threads.max(1));
+    let mut journal = Vec::new();
+    for (i, path) in a.scans.iter().enumerate() {
+        match &a.source {
+            None => {
+                let scan = load_scan(path, &a.scan)?;
+                dropped += scan.dropped_nonfinite;
+                integrator.integrate(&mut map, &scan.points_world, scan.origin_world, a.threads.max(1));
+            }
+            Some(source) => {
+                let (raw, n_dropped) = load_raw_scan(path, &a.scan)?;
+                dropped += n_dropped;
+                let delta = raw
+                    .delta(&mut integrator, a.threads.max(1))
+                    .with_context(|| format!("{}", path.display()))?;
+                map.apply(&delta, 1);
+                integrator.recycle(delta);
+                let seq = a.first_seq + i as u64;
+                let now = now_nanos();
+                journal.push(NewScan {
+                    source: source.clone(),
+                    seq,
+                    stamp_nanos: now,
+                    received_nanos: now,
+                    scan: raw,
+                });
+            }
+        }
         bar.inc(1);
     }
     bar.finish_and_clear();
-    save_map(&a.out, &map)?;
+    save_map_with_scans(&a.out, &map, &journal, a.scans.len() as u64)?;
     eprintln!(
-        "{}: {} scans, {} blocks, {} cells with evidence, {} non-finite points dropped",
+        "{}: {} scans{}, {} blocks, {} cells with evidence, {} non-finite points dropped",
         a.out.display(),
         a.scans.len(),
+        if journal.is_empty() { "" } else { " (journaled)" },
         map.block_count(),
         map.cells_with_evidence(),
         dropped
@@ -59,27 +91,50 @@ pub struct MergeArgs {
     pub out: PathBuf,
 }
 
-pub fn run_merge(a: MergeArgs) -> Result<()> {
-    let mut iter = a.maps.iter();
-    let Some(first) = iter.next() else { bail!("merge needs at least two maps") };
-    let mut merged = load_map(first)?;
-    for path in iter {
-        let other = load_map(path)?;
-        if let Err(diff) = merged.merge_from(&other) {
-            bail!(
-                "cannot merge {} into {}: map parameters differ ({})",
-                path.display(),
-                first.display(),
-                diff.join("; ")
-            );
-        }
+/// Removes a temporary map file and its SQLite and lock siblings.
+fn remove_temp(tmp: &Path) {
+    let _ = std::fs::remove_file(tmp);
+    for suffix in ["-wal", "-shm", "-journal"] {
+        let mut name = tmp.as_os_str().to_os_string();
+        name.push(suffix);
+        let _ = std::fs::remove_file(PathBuf::from(name));
     }
-    save_map(&a.out, &merged).with_context(|| "writing the merged map")?;
+    let _ = std::fs::remove_file(lock::lock_path(tmp));
+}
+
+/// The exact sum of several maps: a copy of the first, then each other merged in (scans that
+/// both hold are counted once; see `DurableMap::merge_from`).
+pub fn run_merge(a: MergeArgs) -> Result<()> {
+    let Some((first, rest)) = a.maps.split_first() else { bail!("merge needs at least two maps") };
+    let tmp = temp_sibling(&a.out);
+    remove_temp(&tmp);
+    let result = (|| -> Result<(u64, usize, usize)> {
+        MapReader::open(first)?.copy_to(&tmp)?;
+        let mut merged = DurableMap::open_recovered(&tmp)?;
+        let mut shared = 0;
+        for path in rest {
+            let change = merged
+                .merge_from(path)
+                .with_context(|| format!("cannot merge {} into {}", path.display(), first.display()))?;
+            shared += change.shared;
+        }
+        let (blocks, cells) = (merged.map().block_count(), merged.map().cells_with_evidence());
+        merged.close()?;
+        Ok((shared, blocks, cells))
+    })();
+    let (shared, blocks, cells) = match result {
+        Ok(r) => r,
+        Err(e) => {
+            remove_temp(&tmp);
+            return Err(e);
+        }
+    };
+    let renamed = std::fs::rename(&tmp, &a.out);
+    remove_temp(&tmp);
+    renamed.with_context(|| format!("{}: cannot write", a.out.display()))?;
     eprintln!(
-        "{}: {} blocks, {} cells with evidence",
-        a.out.display(),
-        merged.block_count(),
-        merged.cells_with_evidence()
+        "{}: {blocks} blocks, {cells} cells with evidence, {shared} shared scans counted once",
+        a.out.display()
     );
     Ok(())
 }

@@ -92,6 +92,8 @@ async fn stream_scans(grpc: std::net::SocketAddr, scans: &[SimScan]) -> Result<(
         .map(|(i, s)| pb::InsertScanRequest {
             map: "demo".into(),
             scan: Some(pb::Scan::world("sim-robot", i as u64 + 1, s.origin, &s.points_world)),
+            // The demo scores the map right after: answer once integrated.
+            wait_applied: true,
         })
         .collect();
     let summary =

@@ -46,7 +46,7 @@ pub fn run(a: IngestArgs) -> Result<()> {
             let scan = load_scan(path, &a.scan)?;
             let seq = a.first_seq + i as u64;
             let scan = pb::Scan::world(&a.source, seq, scan.origin_world, &scan.points_world);
-            let request = pb::InsertScanRequest { map: a.map.clone(), scan: Some(scan) };
+            let request = pb::InsertScanRequest { map: a.map.clone(), scan: Some(scan), wait_applied: false };
             let ack = client
                 .insert_scan(request)
                 .await
@@ -60,7 +60,7 @@ pub fn run(a: IngestArgs) -> Result<()> {
             bar.inc(1);
         }
         bar.finish_and_clear();
-        eprintln!("{}: {applied} scans applied, {duplicates} already in the map", a.map);
+        eprintln!("{}: {applied} scans acknowledged (durable), {duplicates} already in the map", a.map);
         Ok(())
     })
 }

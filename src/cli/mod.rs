@@ -1,9 +1,12 @@
-//! The `bgkmap` command line: offline tools over map files (build, merge, export, eval, bench,
-//! simulate) and the demo. Each subcommand is a thin layer over the library; errors are
+//! The `bgkmap` command line: offline tools over map files (build, merge, check, retract,
+//! repose, export, eval, bench, simulate) and the demo. Each subcommand is a thin layer over the library; errors are
 //! reported once, here, with exit code 1 (2 for usage errors, from clap).
 
 mod args;
 mod bench;
+#[cfg(feature = "server")]
+mod bench_durable;
+mod bench_maps;
 #[cfg(feature = "server")]
 mod bench_server;
 #[cfg(feature = "zenoh")]
@@ -11,6 +14,7 @@ mod bench_zenoh;
 mod build;
 #[cfg(feature = "server")]
 mod demo;
+mod durable;
 mod eval_cmd;
 mod export;
 #[cfg(feature = "server")]
@@ -38,8 +42,15 @@ struct Cli {
 enum Command {
     /// Integrate PCD scans, in the order given, into a new map file.
     Build(build::BuildArgs),
-    /// Sum the evidence of several map files (exact; parameters must match).
+    /// Sum the evidence of several map files (exact; parameters must match; scans that several
+    /// maps hold are counted once).
     Merge(build::MergeArgs),
+    /// Verify a map file: block and journal checksums, SQLite structure.
+    Check(durable::CheckArgs),
+    /// Remove scans from a map file exactly (as if never integrated).
+    Retract(durable::RetractArgs),
+    /// Re-integrate scans of a map file under corrected poses, exactly.
+    Repose(durable::ReposeArgs),
     /// Write a map's cells as CSV, OctoMap .bt or PLY.
     Export(export::ExportArgs),
     /// ROC / AUC of a map against a ground-truth OctoMap .bt.
@@ -65,6 +76,9 @@ pub fn main() -> ExitCode {
     let result = match cli.command {
         Command::Build(a) => build::run_build(a),
         Command::Merge(a) => build::run_merge(a),
+        Command::Check(a) => durable::run_check(a),
+        Command::Retract(a) => durable::run_retract(a),
+        Command::Repose(a) => durable::run_repose(a),
         Command::Export(a) => export::run(a),
         Command::Eval(a) => eval_cmd::run(a),
         Command::Bench(b) => bench::run(b),

@@ -7,6 +7,7 @@ use crate::api::grpc::{GrpcConfig, routes};
 use crate::api::http::{HttpConfig, router};
 use crate::api::zenoh_transport::{ZenohConfig, ZenohMode};
 use crate::service::{MapService, ScanLimits, ServiceConfig};
+use crate::store::Retention;
 use anyhow::{Context, Result};
 use clap::Args;
 use serde::Deserialize;
@@ -24,8 +25,16 @@ pub struct ServerConfig {
     pub grpc_listen: SocketAddr,
     /// HTTP listen address. Default `127.0.0.1:8080` (loopback only).
     pub http_listen: SocketAddr,
-    /// Scans queued per map before ingest answers RESOURCE_EXHAUSTED / 429. Default 64.
+    /// Scans queued per map to be journaled before ingest answers RESOURCE_EXHAUSTED / 429.
+    /// Default 64.
     pub queue_capacity: usize,
+    /// Journaled scans per map waiting for integration before ingest answers busy. Default 256.
+    pub max_unapplied_scans: usize,
+    /// Raw scans kept in each map's journal: `all` (default), `none`, an age (`7d`) or a size
+    /// (`2GiB`).
+    pub journal_retention: String,
+    /// Milliseconds before writing is retried after a failed write. Default 1000.
+    pub write_retry_ms: u64,
     /// Threads per scan integration. Default 1.
     pub threads_per_scan: usize,
     /// Most points per scan. Default 4194304.
@@ -45,6 +54,9 @@ impl Default for ServerConfig {
             grpc_listen: SocketAddr::from(([127, 0, 0, 1], 50051)),
             http_listen: SocketAddr::from(([127, 0, 0, 1], 8080)),
             queue_capacity: 64,
+            max_unapplied_scans: 256,
+            journal_retention: "all".into(),
+            write_retry_ms: 1000,
             threads_per_scan: 1,
             max_points: 4 << 20,
             max_box_cells: 4_000_000,
@@ -74,6 +86,12 @@ pub struct ServeArgs {
     /// Largest box query in lattice positions.
     #[arg(long, env = "BGKMAP_MAX_BOX_CELLS")]
     pub max_box_cells: Option<u64>,
+    /// Raw scans kept in each map's journal: all, none, an age (7d, 12h) or a size (2GiB).
+    #[arg(long, env = "BGKMAP_JOURNAL_RETENTION")]
+    pub journal_retention: Option<String>,
+    /// Milliseconds before writing is retried after a failed write (disk full).
+    #[arg(long, env = "BGKMAP_WRITE_RETRY_MS")]
+    pub write_retry_ms: Option<u64>,
     #[command(flatten)]
     pub zenoh: ZenohArgs,
 }
@@ -148,6 +166,13 @@ impl ServeArgs {
         if let Some(v) = self.max_box_cells {
             c.max_box_cells = v;
         }
+        if let Some(v) = &self.journal_retention {
+            c.journal_retention = v.clone();
+        }
+        if let Some(v) = self.write_retry_ms {
+            c.write_retry_ms = v;
+        }
+        c.journal_retention.parse::<Retention>().map_err(anyhow::Error::msg)?;
         self.zenoh.apply(&mut c.zenoh);
         anyhow::ensure!(c.queue_capacity > 0, "queue_capacity must be > 0");
         anyhow::ensure!(c.threads_per_scan > 0, "threads_per_scan must be > 0");
@@ -198,6 +223,9 @@ pub async fn start(c: &ServerConfig) -> Result<Running> {
         queue_capacity: c.queue_capacity,
         threads_per_scan: c.threads_per_scan,
         limits: ScanLimits { max_points: c.max_points, ..ScanLimits::default() },
+        max_unapplied_scans: c.max_unapplied_scans.max(1),
+        retention: c.journal_retention.parse::<Retention>().map_err(anyhow::Error::msg)?,
+        write_retry: std::time::Duration::from_millis(c.write_retry_ms),
     };
     let dir = c.data_dir.clone();
     let service = Arc::new(
@@ -330,6 +358,10 @@ mod tests {
             (parsed.max_points, parsed.max_box_cells, parsed.max_message_bytes),
             (d.max_points, d.max_box_cells, d.max_message_bytes)
         );
+        assert_eq!(
+            (parsed.max_unapplied_scans, &parsed.journal_retention, parsed.write_retry_ms),
+            (d.max_unapplied_scans, &d.journal_retention, d.write_retry_ms)
+        );
         assert_eq!(parsed.zenoh, d.zenoh);
         assert!(toml::from_str::<ServerConfig>("bogus = 1").is_err(), "unknown keys are refused");
     }
@@ -346,11 +378,16 @@ mod tests {
             http_listen: None,
             queue_capacity: Some(3),
             max_box_cells: None,
+            journal_retention: Some("7d".into()),
+            write_retry_ms: None,
             zenoh: ZenohArgs { connect: vec!["tcp/127.0.0.1:7447".into()], ..ZenohArgs::default() },
         };
         let c = args.resolve().unwrap();
         assert_eq!((c.queue_capacity, c.max_box_cells), (3, 10));
         assert!(c.zenoh.enabled, "a zenoh endpoint flag turns zenoh on");
         assert_eq!((c.zenoh.connect.len(), c.zenoh.listen.len()), (1, 1));
+        assert_eq!(c.journal_retention.parse::<Retention>(), Ok(Retention::MaxAgeSeconds(7 * 86_400)));
+        let bad = ServeArgs { journal_retention: Some("7 weeks".into()), ..args };
+        assert!(bad.resolve().unwrap_err().to_string().contains("unknown unit"));
     }
 }

@@ -43,7 +43,7 @@ pub const TABLE_INTERVALS: usize = 4096;
 pub const COORD_SHIFT: u32 = 16;
 /// `1.5·2^52`: adding it rounds an f64 of magnitude < 2^51 to an integer (ties to even) in the
 /// low mantissa bits — a branch-free, platform-independent rounding.
-const ROUND_MAGIC: f64 = 6_755_399_441_055_744.0;
+pub(crate) const ROUND_MAGIC: f64 = 6_755_399_441_055_744.0;
 
 /// Rounds `v` (|v| < 2^51) to the nearest integer, ties to even.
 #[inline(always)]
@@ -58,7 +58,14 @@ pub struct KernelTable {
     /// stays in L1); entries from N on are zero (the cut-off), so clamping to N gives 0 for every
     /// pair at or beyond `l`.
     entries: Box<[[i32; 2]; TABLE_INTERVALS + 2]>,
+    /// The same table split into values and slopes, for lane-wise (SIMD) evaluation.
+    values: Box<[i32; TABLE_INTERVALS + 1]>,
+    slopes: Box<[i32; TABLE_INTERVALS + 1]>,
 }
+
+/// Table coordinates are clamped here: `N·2^COORD_SHIFT`, the cut-off (`u = 1`), where the
+/// kernel is 0. Fits an i32 (2^28).
+pub const COORD_CUTOFF: i32 = (TABLE_INTERVALS as i32) << COORD_SHIFT;
 
 impl Default for KernelTable {
     fn default() -> Self {
@@ -80,7 +87,37 @@ impl KernelTable {
         for (j, e) in entries.iter_mut().enumerate().take(n) {
             *e = [value(j), value(j + 1) - value(j)];
         }
-        Self { entries }
+        let values = Box::new(std::array::from_fn(|j| entries[j][0]));
+        let slopes: Box<[i32; TABLE_INTERVALS + 1]> = Box::new(std::array::from_fn(|j| entries[j][1]));
+        // The lane-wise path interpolates in i32: slope·frac + ½ must not overflow.
+        assert!(slopes.iter().all(|s| s.unsigned_abs() < 1 << (31 - COORD_SHIFT)), "kernel slope too steep");
+        Self { entries, values, slopes }
+    }
+
+    /// [`Self::quantized_coord`] for a coordinate `x·2^COORD_SHIFT` already clamped to
+    /// `0..=COORD_CUTOFF`, in i32 lane arithmetic (same result: the slope bound asserted in
+    /// [`Self::new`] keeps the product in range). Written so that a loop over lanes vectorises.
+    #[inline(always)]
+    pub fn quantized_lane(&self, xq: i32) -> i32 {
+        let j = (xq >> COORD_SHIFT) as usize;
+        let frac = xq & ((1 << COORD_SHIFT) - 1);
+        let j = j.min(TABLE_INTERVALS);
+        self.values[j] + ((self.slopes[j] * frac + (1 << (COORD_SHIFT - 1))) >> COORD_SHIFT)
+    }
+
+    /// The table's values and slopes (`N + 1` entries each; index `N` is the cut-off, 0).
+    pub fn lanes(&self) -> (&[i32; TABLE_INTERVALS + 1], &[i32; TABLE_INTERVALS + 1]) {
+        (&self.values, &self.slopes)
+    }
+
+    /// The clamped lane coordinate of a squared distance `d2_cells` (≥ 0): `round(d2·scale)`
+    /// capped at [`COORD_CUTOFF`]. Clamping before rounding equals clamping after (rounding is
+    /// monotone and the cap is an integer), and the rounded integer is read from the low 32
+    /// mantissa bits of `v + 1.5·2^52`.
+    #[inline(always)]
+    pub fn lane_coordinate(d2_cells: f64, scale: f64) -> i32 {
+        let v = (d2_cells * scale).min(f64::from(COORD_CUTOFF));
+        (v + ROUND_MAGIC).to_bits() as u32 as i32
     }
 
     /// The fixed-point table coordinate of a pair: `round(x·2^COORD_SHIFT)` for
@@ -164,5 +201,33 @@ mod tests {
         }
         assert_eq!(table.quantized(1.0), 0);
         assert_eq!(table.quantized(0.0), 1 << FIXED_SHIFT);
+    }
+
+    /// The i32 lane path is the same function as the i64 definition, at every table entry's
+    /// edges and at random points of every interval, and beyond the cut-off.
+    #[test]
+    fn lane_path_equals_the_definition() {
+        use rand::{Rng, SeedableRng};
+        let table = KernelTable::new();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        let n = TABLE_INTERVALS as i64;
+        for j in 0..=n {
+            let base = j << COORD_SHIFT;
+            let mut fracs =
+                vec![0, 1, (1 << (COORD_SHIFT - 1)) - 1, 1 << (COORD_SHIFT - 1), (1 << COORD_SHIFT) - 1];
+            fracs.extend((0..16).map(|_| rng.random_range(0..1i64 << COORD_SHIFT)));
+            for f in fracs {
+                let xq = (base + f).min(i64::from(COORD_CUTOFF));
+                assert_eq!(i64::from(table.quantized_lane(xq as i32)), table.quantized_coord(xq), "xq={xq}");
+            }
+        }
+        let scale = 4096.0 * 65536.0 / 4.0;
+        for _ in 0..100_000 {
+            let d2: f64 = rng.random_range(0.0..9.0);
+            let lane = KernelTable::lane_coordinate(d2, scale);
+            let full = KernelTable::coordinate(d2, scale);
+            assert_eq!(table.quantized_lane(lane), table.quantized_coord(full) as i32, "d2={d2}");
+            assert_eq!(i64::from(lane), full.min(i64::from(COORD_CUTOFF)));
+        }
     }
 }

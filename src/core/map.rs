@@ -117,6 +117,11 @@ impl EvidenceMap {
         self.blocks.get(&key).map(|b| &**b)
     }
 
+    /// A shared handle to one block (cheap: a reference count).
+    pub fn block_arc(&self, key: BlockKey) -> Option<Arc<BlockEvidence>> {
+        self.blocks.get(&key).cloned()
+    }
+
     /// Blocks in hash order (callers that emit anything sort first; see [`Self::block_keys_sorted`]).
     pub fn blocks_unsorted(&self) -> impl Iterator<Item = (&BlockKey, &BlockEvidence)> {
         self.blocks.iter().map(|(k, b)| (k, &**b))

@@ -4,6 +4,7 @@
 //! Nothing here does I/O, spawns tasks or knows about a network transport. Evidence is integer
 //! fixed-point (see [`evidence`]), so every way of combining the same scans gives the same bits.
 
+pub mod edit;
 pub mod evidence;
 pub mod kernel;
 pub mod key;
@@ -11,10 +12,15 @@ pub mod map;
 pub mod params;
 pub mod pose;
 pub mod query;
+pub mod raw_scan;
 pub mod scatter;
+pub mod simd;
 pub mod training;
+pub mod window;
 
+pub use edit::{EditedBlocks, MapEdit};
 pub use key::{BlockKey, CellKey};
 pub use map::{CellEstimate, CellState, EvidenceMap, Integrator};
 pub use params::{MapParams, RangeMode, Thresholds};
 pub use pose::{PointFrame, Pose};
+pub use raw_scan::RawScan;

@@ -10,19 +10,24 @@
 //! Every pair's value comes from [`pair_coord`](super::evidence::pair_coord)'s arithmetic and
 //! [`KernelTable::quantized_coord`], so the result equals the brute-force reference bit for bit.
 //!
-//! # Where the time goes (sample data, 2-vCPU Xeon VM, release)
+//! Kernel lengths up to 3 cells (la3dm's defaults are 2) take the lane-wise path of
+//! [`super::window`]: fixed W³ windows per point in a per-bucket brick. Longer kernels take the
+//! stencil path below.
 //!
-//! About 190k pairs per scan (truncate mode) take ~2.4–3.3 ms here, i.e. ~13–17 ns per pair;
-//! a profile is flat: the kernel lookup is ~18%, the rest is the per-row and per-pair loop
-//! bookkeeping (~45 instructions per pair at an IPC near 1.5). Tried and measured without gain:
-//! a dense L1 brick per bucket (its flush cost more than the pairs), branch-free full stencils,
-//! f32 / f64 / integer table interpolation, `-C target-cpu=x86-64-v3`. Reaching ~2 ns per pair
-//! needs the pairs evaluated 4–8 at a time (SIMD over a row's x offsets or over a point's
-//! in-ball pair list) — the next step for the speed target.
+//! # Where the time goes (sample data, 2-vCPU Xeon VM, release, other core idle)
+//!
+//! Stencil path: ~190k in-ball pairs per scan at ~13–17 ns per pair (~2.4–3.4 ms), a flat
+//! profile of per-row bookkeeping (~45 instructions per pair). Window path: ~370k lanes per scan
+//! (64 per point, ~52% inside the ball) in 1.5–2.4 ms with the AVX2 lookups of
+//! [`super::simd`], 2.7–3.0 ms without them. Its profile: the 64 lookups ~35% (two gathers per
+//! 8 lanes; gathers are slow on this CPU), window accumulation and point split ~40%, brick folding
+//! ~25%. The next steps: evaluate only the rows inside the ball, fold with vector adds, and
+//! drop the per-scan delta blocks' zeroing by accumulating straight into sparse blocks.
 
 use super::evidence::{BlockEvidence, PairGeometry, ScanDelta, split_point};
 use super::kernel::KernelTable;
 use super::key::{BLOCK_EDGE, BLOCK_SHIFT, BlockKey, CellKey};
+use super::window::{Brick, window_shape};
 
 /// Above this many block slots the scan is split into tiles of points.
 const MAX_SLOTS: i64 = 1 << 22;
@@ -46,6 +51,8 @@ pub struct Scatter {
     delta: SlotGrid,
     spare: Vec<Box<BlockEvidence>>,
     cells: Vec<CellPoint>,
+    cells_sorted: Vec<CellPoint>,
+    brick: Brick,
 }
 
 /// A dense grid of block slots over a box of block keys.
@@ -131,9 +138,33 @@ impl Scatter {
     ) -> ScanDelta {
         let (lo, hi) = block_bounds(pts);
         self.bucket(pts, lo, hi);
+        let shape = window_shape(geo.ell_cells).filter(|&(_, m)| m <= B as usize);
         // Delta blocks reach R cells beyond the points' blocks: at most M = ⌈R/B⌉ blocks further.
-        let m = (r + B - 1) / B;
+        let reach = shape.map_or(r, |(_, m)| r.max(m as i32));
+        let m = (reach + B - 1) / B;
         self.delta.reset(lo.map(|v| v - m), hi.map(|v| v + m));
+        let exact_blocks = shape.is_some();
+        match shape {
+            Some((1, margin)) => self.windows::<1, 1>(pts, geo, table, margin),
+            Some((2, margin)) => self.windows::<2, 8>(pts, geo, table, margin),
+            Some((3, margin)) => self.windows::<3, 27>(pts, geo, table, margin),
+            Some((4, margin)) => self.windows::<4, 64>(pts, geo, table, margin),
+            Some((5, margin)) => self.windows::<5, 125>(pts, geo, table, margin),
+            Some((6, margin)) => self.windows::<6, 216>(pts, geo, table, margin),
+            _ => self.stencils(pts, geo, table, r, m),
+        }
+        let mut blocks = std::mem::take(&mut self.delta.blocks);
+        // A block reached only by pairs whose mass rounds to 0 holds nothing: drop it. (The
+        // window path allocates only blocks that receive mass; masses are never negative.)
+        if !exact_blocks {
+            blocks.retain(|(_, b)| !b.is_empty());
+        }
+        blocks.sort_unstable_by_key(|(k, _)| *k);
+        ScanDelta { blocks }
+    }
+
+    /// The general path: per point, the rows of its stencil inside the ball.
+    fn stencils(&mut self, pts: &[CellPoint], geo: &PairGeometry, table: &KernelTable, r: i32, m: i32) {
         let side = (2 * m + 1) as usize;
         for s in 0..self.grid.slots.len() {
             let (start, end) = (self.starts[s] as usize, self.starts[s + 1] as usize);
@@ -149,11 +180,76 @@ impl Scatter {
                 scatter_point(&mut target, p, hit, r, geo, table);
             }
         }
-        let mut blocks = std::mem::take(&mut self.delta.blocks);
-        // A block reached only by pairs whose mass rounds to 0 holds nothing: drop it.
-        blocks.retain(|(_, b)| !b.is_empty());
-        blocks.sort_unstable_by_key(|(k, _)| *k);
-        ScanDelta { blocks }
+    }
+
+    /// The lane-wise path ([`super::window`]): one brick per bucket, folded into the delta.
+    fn windows<const W: usize, const W3: usize>(
+        &mut self,
+        pts: &[CellPoint],
+        geo: &PairGeometry,
+        table: &KernelTable,
+        margin: usize,
+    ) {
+        self.brick.reset(margin);
+        // Points in bucket order, so each bucket reads one contiguous run.
+        let mut sorted = std::mem::take(&mut self.cells_sorted);
+        sorted.clear();
+        sorted.extend(self.order.iter().map(|&i| pts[i as usize]));
+        for s in 0..self.grid.slots.len() {
+            let (start, end) = (self.starts[s] as usize, self.starts[s + 1] as usize);
+            if start == end {
+                continue;
+            }
+            let block = self.grid_block_of_slot(s);
+            let origin = block.map(|v| v * B);
+            for &(p, hit) in &sorted[start..end] {
+                self.brick.add_point::<W, W3>(p, hit, origin, geo, table);
+            }
+            self.fold_brick(block);
+        }
+        self.cells_sorted = sorted;
+    }
+
+    /// Adds the touched regions of the brick into the delta blocks around `block`, zeroing them.
+    fn fold_brick(&mut self, block: [i32; 3]) {
+        let Self { brick, delta, spare, .. } = self;
+        let (e, m) = (brick.edge(), brick.margin());
+        let b = B as usize;
+        // Per region: (first brick cell, first target cell, length).
+        let span = |r: usize| [(0, b - m, m), (m, 0, b), (m + b, 0, m)][r];
+        for label in 0..2 {
+            let mut mask = brick.touched[label];
+            while mask != 0 {
+                let bit = mask.trailing_zeros() as usize;
+                mask &= mask - 1;
+                let r = [bit % 3, bit / 3 % 3, bit / 9];
+                let (sx, sy, sz) = (span(r[0]), span(r[1]), span(r[2]));
+                let src = if label == 0 { &mut brick.a } else { &mut brick.b };
+                let rows = || {
+                    (0..sz.2)
+                        .flat_map(move |z| (0..sy.2).map(move |y| ((sz.0 + z) * e + sy.0 + y) * e + sx.0))
+                };
+                // Windows reach their corners with zero mass: allocate only blocks that get some.
+                if rows().all(|from| src[from..from + sx.2].iter().all(|&v| v == 0)) {
+                    continue;
+                }
+                let key = [0, 1, 2].map(|i| block[i] + r[i] as i32 - 1);
+                let idx = delta.block_index(key, spare) as usize;
+                let target = &mut delta.blocks[idx].1;
+                let dst = if label == 0 { &mut target.a } else { &mut target.b };
+                for z in 0..sz.2 {
+                    for y in 0..sy.2 {
+                        let from = ((sz.0 + z) * e + sy.0 + y) * e + sx.0;
+                        let to = ((sz.1 + z) * b + sy.1 + y) * b + sx.1;
+                        for (d, s) in dst[to..to + sx.2].iter_mut().zip(&mut src[from..from + sx.2]) {
+                            *d += *s;
+                            *s = 0;
+                        }
+                    }
+                }
+            }
+        }
+        brick.touched = [0; 2];
     }
 
     fn grid_block_of_slot(&self, s: usize) -> [i32; 3] {

@@ -1,44 +1,77 @@
 //! `MapService`: the one API every transport (gRPC, HTTP, zenoh) calls.
 //!
-//! It owns the named maps of a data directory (one map file `<name>.bgkmap` each) and, per map,
-//! a single writer thread that takes scans from a bounded queue, integrates them, persists the
-//! touched blocks together with the scan's identity, and publishes a new immutable snapshot.
-//! Readers take the current snapshot (an `Arc`) and never wait for the writer nor see a
-//! half-applied scan. A scan whose `(source, seq)` the map already holds is acknowledged as a
-//! duplicate and not applied again. A full queue is an answer ([`ServiceError::Busy`]), not a
-//! wait.
+//! It owns the named maps of a data directory (one map file `<name>.bgkmap` each, see
+//! [`crate::store`]). Per map, two threads:
+//! - the **journal** thread takes validated scans from a bounded queue, writes each batch to the
+//!   map file's journal in one durable transaction (group commit: one fsync per batch) and
+//!   acknowledges them — *acknowledged means durable*. A scan whose `(source, seq)` the map
+//!   already holds is acknowledged as a duplicate and not applied again;
+//! - the **writer** thread integrates journaled scans in batches, commits their evidence and
+//!   status in one transaction, and publishes a new immutable snapshot. It also runs the exact
+//!   operations (retract, re-pose, merge) in order with the scans, and journal retention.
+//!
+//! A caller may ask to be answered only once its scan is integrated (read-your-writes). Readers
+//! take the current snapshot (an `Arc`): they never wait for a writer nor see a half-applied
+//! scan. A full queue (or too many journaled scans waiting for integration) is an answer
+//! ([`ServiceError::Busy`]), not a wait. A failed write makes the map read-only until writing
+//! works again (see the `health` module). On open, journaled scans not yet integrated are replayed before the
+//! map serves, so the first snapshot holds every acknowledged scan.
 //!
 //! The service is synchronous (std threads and channels); transports adapt the completion
-//! callback of [`MapService::submit_scan`] to their own runtime. It knows nothing of any wire
-//! format.
+//! callbacks to their own runtime. It knows nothing of any wire format.
 
+mod health;
+mod info;
+mod ingest;
+mod ops;
 mod scan;
+mod snapshot;
 mod writer;
 
+pub use info::{MapInfo, SourceStats};
+pub use ops::MergeSource;
 pub use scan::{ScanInput, ScanLimits};
+pub use snapshot::Snapshot;
 
-use crate::core::{EvidenceMap, MapParams};
-use crate::store::{MapFile, StoreError};
+use crate::core::MapParams;
+use crate::store::journal::SourceContent;
+use crate::store::{DurableMap, MapFile, Retention, StoreError};
+use health::Faults;
+use info::SessionCounts;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::sync::mpsc::{SyncSender, TrySendError};
+use std::sync::atomic::{AtomicU64, AtomicUsize};
 use std::sync::{Arc, Mutex, PoisonError, RwLock};
-use writer::{Job, Writer};
+use std::time::Duration;
 
 /// Service settings (defaults documented per field).
 #[derive(Debug, Clone)]
 pub struct ServiceConfig {
-    /// Scans waiting per map before submissions are refused as busy. Default 64.
+    /// Scans waiting per map to be journaled before submissions are refused as busy. Default 64.
     pub queue_capacity: usize,
+    /// Journaled scans per map waiting to be integrated before submissions are refused as
+    /// busy. Default 256.
+    pub max_unapplied_scans: usize,
     /// Threads per scan integration (results are bit-identical for any count). Default 1.
     pub threads_per_scan: usize,
     /// Limits on one scan.
     pub limits: ScanLimits,
+    /// How long raw scans stay in the journal. Default: all of them.
+    pub retention: Retention,
+    /// After a failed write, how long before writing is tried again. Default 1 s.
+    pub write_retry: Duration,
 }
 
 impl Default for ServiceConfig {
     fn default() -> Self {
-        Self { queue_capacity: 64, threads_per_scan: 1, limits: ScanLimits::default() }
+        Self {
+            queue_capacity: 64,
+            max_unapplied_scans: 256,
+            threads_per_scan: 1,
+            limits: ScanLimits::default(),
+            retention: Retention::All,
+            write_retry: Duration::from_secs(1),
+        }
     }
 }
 
@@ -47,16 +80,34 @@ impl Default for ServiceConfig {
 pub enum ServiceError {
     #[error("map {0:?} not found")]
     NotFound(String),
+    #[error("{0}")]
+    ScansNotFound(String),
     #[error("map {0:?} already exists")]
     AlreadyExists(String),
     #[error("invalid {field}: {reason}")]
     InvalidArgument { field: String, reason: String },
     #[error("map {map:?} is busy: {queued} scans queued; retry in {retry_after_ms} ms")]
     Busy { map: String, queued: usize, retry_after_ms: u64 },
+    #[error(
+        "map {map:?} is read-only: {reason}; queries still work; ingest resumes by itself once writing succeeds again"
+    )]
+    ReadOnly { map: String, reason: String },
+    /// The operation cannot be done exactly (raw scans pruned, conflicting scans, …).
+    #[error("{0}")]
+    Precondition(String),
+    /// Stored data is damaged (a corrupt block or journal record).
+    #[error("{0}")]
+    DataLoss(String),
     #[error("the service is shutting down")]
     ShuttingDown,
     #[error(transparent)]
-    Storage(#[from] StoreError),
+    Storage(StoreError),
+}
+
+impl From<StoreError> for ServiceError {
+    fn from(e: StoreError) -> Self {
+        if e.is_corruption() { Self::DataLoss(e.to_string()) } else { Self::Storage(e) }
+    }
 }
 
 impl ServiceError {
@@ -68,58 +119,72 @@ impl ServiceError {
 /// The outcome of one scan.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Ack {
-    /// False when the map already held this `(source, seq)`; nothing was applied.
+    /// False when the map already held this `(source, seq)`: nothing new was journaled.
     pub applied: bool,
-    /// The map version after this scan (the number of scans applied so far).
+    /// True when answered after integration: `version` then includes the scan.
+    pub integrated: bool,
+    /// The map version when answered.
     pub version: u64,
     /// Input points dropped because they were not finite.
     pub dropped_points: usize,
 }
 
+/// How a scan is acknowledged.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct SubmitOptions {
+    /// Answer only once the scan is integrated and visible to queries (read-your-writes);
+    /// otherwise once it is durable in the journal.
+    pub wait_applied: bool,
+}
+
 /// A completion callback for a submitted scan.
 pub type Done = Box<dyn FnOnce(Result<Ack, ServiceError>) + Send>;
 
-/// An immutable view of a map after a whole number of scans.
+pub use crate::store::Change;
+
+/// State one map's threads share with the service.
 #[derive(Debug)]
-pub struct Snapshot {
-    pub version: u64,
-    pub map: EvidenceMap,
+pub(super) struct Shared {
+    pub snapshot: RwLock<Arc<Snapshot>>,
+    /// Submitted, not yet journaled.
+    pub queued: AtomicUsize,
+    /// Journaled, not yet integrated.
+    pub backlog: AtomicUsize,
+    pub integration_micros: AtomicU64,
+    pub session: Mutex<BTreeMap<String, SessionCounts>>,
+    /// What the journal holds.
+    pub stats: Mutex<JournalStats>,
+    pub faults: Faults,
 }
 
-/// Per-source ingest counters.
-#[derive(Debug, Clone, Default, PartialEq, Eq)]
-pub struct SourceStats {
-    pub received: u64,
-    pub applied: u64,
-    pub duplicates: u64,
-    pub rejected: u64,
-    pub highest_seq: Option<u64>,
-    /// Non-finite input points dropped from this source's applied scans.
-    pub dropped_points: u64,
+/// What a map's journal holds, kept so that a scan counts the moment it is acknowledged.
+#[derive(Debug, Default)]
+pub(super) struct JournalStats {
+    /// Per source, as of the writer's last change.
+    pub content: Arc<BTreeMap<String, SourceContent>>,
+    /// Bytes of raw scans stored, as of the writer's last change.
+    pub journal_bytes: u64,
+    /// Per source: journaled by the journal thread, not yet integrated by the writer.
+    pub in_flight: BTreeMap<String, u64>,
 }
 
-/// What `GetMap` / `ListMaps` report.
-#[derive(Debug, Clone)]
-pub struct MapInfo {
-    pub name: String,
-    pub params: MapParams,
-    pub version: u64,
-    pub blocks: usize,
-    pub cells_with_evidence: usize,
-    pub queued: usize,
-    /// Time the writer spent integrating scans (training data, evidence, map update), seconds.
-    pub integration_seconds_total: f64,
-    pub sources: BTreeMap<String, SourceStats>,
+impl Shared {
+    pub fn snapshot(&self) -> Arc<Snapshot> {
+        self.snapshot.read().unwrap_or_else(PoisonError::into_inner).clone()
+    }
+
+    pub fn count(&self, source: &str, f: impl FnOnce(&mut SessionCounts)) {
+        f(lock(&self.session).entry(source.to_string()).or_default());
+    }
 }
 
 struct MapHandle {
     params: MapParams,
-    queue: Mutex<Option<SyncSender<Job>>>,
-    queued: Arc<std::sync::atomic::AtomicUsize>,
-    integration_micros: Arc<std::sync::atomic::AtomicU64>,
-    snapshot: Arc<RwLock<Arc<Snapshot>>>,
-    sources: Arc<Mutex<BTreeMap<String, SourceStats>>>,
-    writer: Mutex<Option<std::thread::JoinHandle<()>>>,
+    path: PathBuf,
+    queue: Mutex<Option<std::sync::mpsc::SyncSender<ingest::Job>>>,
+    ops: Mutex<Option<std::sync::mpsc::Sender<writer::Work>>>,
+    shared: Arc<Shared>,
+    threads: Mutex<Vec<std::thread::JoinHandle<()>>>,
 }
 
 /// The maps of one data directory.
@@ -149,12 +214,13 @@ pub fn validate_map_name(name: &str) -> Result<(), ServiceError> {
     }
 }
 
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+pub(super) fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(PoisonError::into_inner)
 }
 
 impl MapService {
-    /// Opens every map file in `data_dir` (created if missing) and starts their writers.
+    /// Opens every map file in `data_dir` (created if missing), replays their journals and
+    /// starts their threads.
     pub fn open(data_dir: &Path, config: ServiceConfig) -> Result<Self, ServiceError> {
         std::fs::create_dir_all(data_dir)
             .map_err(|error| StoreError::Io { path: data_dir.to_path_buf(), error })?;
@@ -171,41 +237,40 @@ impl MapService {
             if validate_map_name(&name).is_err() {
                 continue;
             }
-            let opened = MapFile::open(&path)?;
-            service.start(name, opened.file, opened.map, opened.scans);
+            service.start(name, &path)?;
         }
         Ok(service)
     }
 
-    fn start(&self, name: String, file: MapFile, map: EvidenceMap, scans: Vec<(String, u64)>) {
-        let (tx, rx) = std::sync::mpsc::sync_channel(self.config.queue_capacity.max(1));
-        let snapshot =
-            Arc::new(RwLock::new(Arc::new(Snapshot { version: scans.len() as u64, map: map.clone() })));
-        let params = *map.params();
-        let sources = Arc::new(Mutex::new(BTreeMap::new()));
-        let queued = Arc::new(std::sync::atomic::AtomicUsize::new(0));
-        let integration_micros = Arc::new(std::sync::atomic::AtomicU64::new(0));
-        let shared = writer::Shared {
-            snapshot: snapshot.clone(),
-            sources: sources.clone(),
-            queued: queued.clone(),
-            integration_micros: integration_micros.clone(),
+    /// Opens one map file, replays its journal and starts its threads.
+    fn start(&self, name: String, path: &Path) -> Result<(), ServiceError> {
+        let c = &self.config;
+        let recovered = DurableMap::open(path, c.threads_per_scan, c.retention)?;
+        let journal = MapFile::connect(path)?;
+        let (shared, writer) = writer::Writer::recover(recovered, c)?;
+        let (work_tx, work_rx) = std::sync::mpsc::channel();
+        let (job_tx, job_rx) = std::sync::mpsc::sync_channel(c.queue_capacity.max(1));
+        let spawn = |what: &str, f: Box<dyn FnOnce() + Send>| {
+            std::thread::Builder::new()
+                .name(format!("bgkmap-{what}-{name}"))
+                .spawn(f)
+                .map_err(|error| ServiceError::Storage(StoreError::Io { path: path.to_path_buf(), error }))
         };
-        let writer = Writer::new(file, map, scans, shared, &self.config);
-        let join = std::thread::Builder::new()
-            .name(format!("bgkmap-writer-{name}"))
-            .spawn(move || writer.run(rx))
-            .ok();
+        let journaler = ingest::Journaler::new(journal, work_tx.clone(), shared.clone());
+        let threads = vec![
+            spawn("writer", Box::new(move || writer.run(work_rx)))?,
+            spawn("journal", Box::new(move || journaler.run(job_rx)))?,
+        ];
         let handle = MapHandle {
-            params,
-            queue: Mutex::new(Some(tx)),
-            queued,
-            integration_micros,
-            snapshot,
-            sources,
-            writer: Mutex::new(join),
+            params: *shared.snapshot().map.params(),
+            path: path.to_path_buf(),
+            queue: Mutex::new(Some(job_tx)),
+            ops: Mutex::new(Some(work_tx)),
+            shared,
+            threads: Mutex::new(threads),
         };
         self.maps.write().unwrap_or_else(PoisonError::into_inner).insert(name, Arc::new(handle));
+        Ok(())
     }
 
     fn handle(&self, name: &str) -> Result<Arc<MapHandle>, ServiceError> {
@@ -227,103 +292,27 @@ impl MapService {
             }
             other => other.into(),
         })?;
-        self.start(name.to_string(), file, EvidenceMap::new(params), Vec::new());
+        file.close()?;
+        self.start(name.to_string(), &path)?;
         self.map_info(name)
-    }
-
-    /// Every map, by name.
-    pub fn list_maps(&self) -> Vec<MapInfo> {
-        let names: Vec<String> =
-            self.maps.read().unwrap_or_else(PoisonError::into_inner).keys().cloned().collect();
-        names.iter().filter_map(|n| self.map_info(n).ok()).collect()
-    }
-
-    /// Parameters and statistics of one map.
-    pub fn map_info(&self, name: &str) -> Result<MapInfo, ServiceError> {
-        let h = self.handle(name)?;
-        let snap = h.snapshot.read().unwrap_or_else(PoisonError::into_inner).clone();
-        Ok(MapInfo {
-            name: name.to_string(),
-            params: h.params,
-            version: snap.version,
-            blocks: snap.map.block_count(),
-            cells_with_evidence: snap.map.cells_with_evidence(),
-            queued: h.queued.load(std::sync::atomic::Ordering::Relaxed),
-            integration_seconds_total: h.integration_micros.load(std::sync::atomic::Ordering::Relaxed) as f64
-                / 1e6,
-            sources: lock(&h.sources).clone(),
-        })
     }
 
     /// The current snapshot of a map: whole scans only; never blocks on the writer.
     pub fn snapshot(&self, name: &str) -> Result<Arc<Snapshot>, ServiceError> {
-        let h = self.handle(name)?;
-        let snap = h.snapshot.read().unwrap_or_else(PoisonError::into_inner).clone();
-        Ok(snap)
+        Ok(self.handle(name)?.shared.snapshot())
     }
 
-    /// Validates a scan and queues it for the map's writer; `done` is called once the scan is
-    /// applied and persisted (or found to be a duplicate, or failed). Errors returned here
-    /// (unknown map, invalid scan, busy) mean the scan was not queued and `done` is not called.
-    pub fn submit_scan(&self, name: &str, scan: ScanInput, done: Done) -> Result<(), ServiceError> {
-        let h = self.handle(name)?;
-        let prepared = match scan.prepare(&self.config.limits) {
-            Ok(p) => p,
-            Err(e) => {
-                lock(&h.sources).entry(scan.source.clone()).or_default().rejected += 1;
-                return Err(e);
-            }
-        };
-        let queue = lock(&h.queue);
-        let Some(tx) = queue.as_ref() else { return Err(ServiceError::ShuttingDown) };
-        h.queued.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-        match tx.try_send(Job { scan: prepared, done }) {
-            Ok(()) => Ok(()),
-            Err(err) => {
-                let queued = h.queued.fetch_sub(1, std::sync::atomic::Ordering::Relaxed) - 1;
-                match err {
-                    TrySendError::Full(_) => Err(ServiceError::Busy {
-                        map: name.to_string(),
-                        queued,
-                        retry_after_ms: 50 * (1 + queued as u64 / 8),
-                    }),
-                    TrySendError::Disconnected(_) => Err(ServiceError::ShuttingDown),
-                }
-            }
-        }
-    }
-
-    /// Counts a scan of `source` that a transport refused before it reached the map (a payload
-    /// that does not decode), as `rejected` like a scan that fails validation. The map must
-    /// exist and the source name be valid (1–`max_source_len` bytes), so a stranger cannot grow
-    /// the per-source table with names of any length.
-    pub fn count_rejected(&self, name: &str, source: &str) -> Result<(), ServiceError> {
-        let h = self.handle(name)?;
-        if source.is_empty() || source.len() > self.config.limits.max_source_len {
-            let max = self.config.limits.max_source_len;
-            return Err(ServiceError::invalid("source", format!("must be 1–{max} bytes")));
-        }
-        lock(&h.sources).entry(source.to_string()).or_default().rejected += 1;
-        Ok(())
-    }
-
-    /// Submits a scan and waits for its outcome (for synchronous callers and tests).
-    pub fn insert_scan_blocking(&self, name: &str, scan: ScanInput) -> Result<Ack, ServiceError> {
-        let (tx, rx) = std::sync::mpsc::sync_channel(1);
-        self.submit_scan(name, scan, Box::new(move |r| drop(tx.send(r))))?;
-        rx.recv().unwrap_or(Err(ServiceError::ShuttingDown))
-    }
-
-    /// Stops accepting scans, lets every writer drain its queue (each scan is persisted as it is
-    /// applied), and joins the writers.
+    /// Stops accepting scans, lets every map's threads drain their queues (each scan journaled
+    /// and integrated), and joins them.
     pub fn shutdown(&self) {
         let handles: Vec<Arc<MapHandle>> =
             self.maps.read().unwrap_or_else(PoisonError::into_inner).values().cloned().collect();
         for h in &handles {
             lock(&h.queue).take();
+            lock(&h.ops).take();
         }
         for h in &handles {
-            if let Some(j) = lock(&h.writer).take() {
+            for j in lock(&h.threads).drain(..) {
                 let _ = j.join();
             }
         }

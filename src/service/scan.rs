@@ -1,7 +1,7 @@
 //! A scan as it arrives at the service, and its validation.
 
 use super::ServiceError;
-use crate::core::{PointFrame, Pose};
+use crate::core::{PointFrame, Pose, RawScan};
 
 /// One scan from a transport: identity, sensor pose, points and an optional max range.
 #[derive(Debug, Clone, PartialEq)]
@@ -14,6 +14,9 @@ pub struct ScanInput {
     pub points: Vec<[f32; 3]>,
     /// The scan's own maximum range (m), capped by the map's.
     pub max_range_m: Option<f64>,
+    /// When the scan was taken (Unix ns); the arrival time when absent. Used by retraction of a
+    /// time range.
+    pub stamp_nanos: Option<i64>,
 }
 
 /// Limits on one scan.
@@ -31,30 +34,37 @@ impl Default for ScanLimits {
     }
 }
 
-/// A validated scan in the world frame.
+/// A validated scan: exactly what is journaled (finite points, in the frame they came in).
 #[derive(Debug, Clone)]
 pub(super) struct PreparedScan {
     pub source: String,
     pub seq: u64,
-    pub origin_world: [f64; 3],
-    pub points_world: Vec<[f32; 3]>,
-    pub max_range_m: Option<f64>,
+    pub stamp_nanos: Option<i64>,
+    pub raw: RawScan,
     pub dropped_points: usize,
 }
 
+/// Checks a source name (also used by retraction and re-posing).
+pub(super) fn validate_source(source: &str, limits: &ScanLimits) -> Result<(), ServiceError> {
+    if source.is_empty() || source.len() > limits.max_source_len {
+        return Err(ServiceError::invalid("source", format!("must be 1–{} bytes", limits.max_source_len)));
+    }
+    Ok(())
+}
+
+/// Checks a sequence number (stored as a signed 64-bit integer).
+pub(super) fn validate_seq(seq: u64) -> Result<(), ServiceError> {
+    if seq > i64::MAX as u64 {
+        return Err(ServiceError::invalid("seq", "must be below 2^63"));
+    }
+    Ok(())
+}
+
 impl ScanInput {
-    /// Checks every field (errors name it), drops non-finite points, moves points to the world
-    /// frame.
+    /// Checks every field (errors name it) and drops non-finite points.
     pub(super) fn prepare(&self, limits: &ScanLimits) -> Result<PreparedScan, ServiceError> {
-        if self.source.is_empty() || self.source.len() > limits.max_source_len {
-            return Err(ServiceError::invalid(
-                "source",
-                format!("must be 1–{} bytes", limits.max_source_len),
-            ));
-        }
-        if self.seq > i64::MAX as u64 {
-            return Err(ServiceError::invalid("seq", "must be below 2^63"));
-        }
+        validate_source(&self.source, limits)?;
+        validate_seq(self.seq)?;
         self.world_from_sensor
             .validate()
             .map_err(|e| ServiceError::invalid("world_from_sensor", e.to_string()))?;
@@ -72,23 +82,22 @@ impl ScanInput {
                 format!("{} points exceed the limit of {}", self.points.len(), limits.max_points),
             ));
         }
-        let mut points: Vec<[f32; 3]> =
+        let points: Vec<[f32; 3]> =
             self.points.iter().copied().filter(|p| p.iter().all(|v| v.is_finite())).collect();
         let dropped_points = self.points.len() - points.len();
         if points.is_empty() {
             return Err(ServiceError::invalid("points", "no finite points"));
         }
-        if self.frame == PointFrame::Sensor {
-            self.world_from_sensor
-                .sensor_to_world(&mut points)
-                .map_err(|e| ServiceError::invalid("world_from_sensor", e.to_string()))?;
-        }
         Ok(PreparedScan {
             source: self.source.clone(),
             seq: self.seq,
-            origin_world: self.world_from_sensor.translation_m,
-            points_world: points,
-            max_range_m: self.max_range_m,
+            stamp_nanos: self.stamp_nanos,
+            raw: RawScan {
+                frame: self.frame,
+                world_from_sensor: self.world_from_sensor,
+                points,
+                max_range_m: self.max_range_m,
+            },
             dropped_points,
         })
     }

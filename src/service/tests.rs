@@ -1,4 +1,5 @@
 use super::*;
+use crate::core::EvidenceMap;
 use crate::core::{Integrator, PointFrame, Pose};
 use crate::sim::{Lidar, simulate};
 
@@ -14,6 +15,7 @@ fn sim_scans(n: usize) -> Vec<ScanInput> {
             frame: PointFrame::World,
             points: s.points_world,
             max_range_m: None,
+            stamp_nanos: None,
         })
         .collect()
 }
@@ -75,7 +77,7 @@ fn duplicates_change_nothing() {
     svc.insert_scan_blocking("m", scans[0].clone()).unwrap();
     let before = svc.snapshot("m").unwrap();
     let ack = svc.insert_scan_blocking("m", scans[0].clone()).unwrap();
-    assert_eq!(ack, Ack { applied: false, version: 1, dropped_points: 0 });
+    assert_eq!(ack, Ack { applied: false, integrated: false, version: 1, dropped_points: 0 });
     let after = svc.snapshot("m").unwrap();
     assert!(Arc::ptr_eq(&before, &after));
     // Same seq from another source is a different scan.
@@ -163,6 +165,7 @@ fn sensor_frame_scans_equal_their_world_frame_twins() {
             .map(|i| [4.0, -1.0 + (i % 20) as f32 * 0.125, -0.5 + (i / 20) as f32 * 0.125])
             .collect(),
         max_range_m: None,
+        stamp_nanos: None,
     };
     let sensor = ScanInput {
         frame: PointFrame::Sensor,
@@ -235,4 +238,27 @@ fn readers_never_see_a_partial_scan() {
     }
     let seen = reader.join().unwrap();
     assert!(seen.contains(&5));
+}
+
+/// Per-source statistics survive a restart; gaps count missing sequence numbers.
+#[test]
+fn source_stats_count_gaps_and_survive_restart() {
+    let dir = tempfile::tempdir().unwrap();
+    let scans = sim_scans(3);
+    {
+        let svc = MapService::open(dir.path(), ServiceConfig::default()).unwrap();
+        svc.create_map("m", MapParams::default()).unwrap();
+        for (s, seq) in scans.iter().zip([1, 2, 5]) {
+            svc.insert_scan_blocking("m", ScanInput { seq, ..s.clone() }).unwrap();
+        }
+        svc.insert_scan_blocking("m", ScanInput { seq: 2, ..scans[0].clone() }).unwrap();
+        let st = &svc.map_info("m").unwrap().sources["robot1"];
+        assert_eq!((st.received, st.applied, st.duplicates, st.highest_seq, st.gaps), (4, 3, 1, Some(5), 2));
+    }
+    let svc = MapService::open(dir.path(), ServiceConfig::default()).unwrap();
+    let info = svc.map_info("m").unwrap();
+    let st = &info.sources["robot1"];
+    assert_eq!((st.received, st.applied, st.duplicates, st.highest_seq, st.gaps), (0, 3, 0, Some(5), 2));
+    assert_eq!((info.scans, info.version, info.read_only.as_deref()), (3, 3, None));
+    assert!(info.journal_bytes > 0);
 }

@@ -1,105 +1,255 @@
-//! The single writer of one map: integrate, persist, publish.
+//! The writer thread of one map: integrate journaled scans in batches, run the exact
+//! operations in order with them, apply retention, publish snapshots.
 
-use super::scan::PreparedScan;
-use super::{Ack, Done, ServiceConfig, ServiceError, Snapshot, SourceStats};
-use crate::core::{EvidenceMap, Integrator};
-use crate::store::MapFile;
-use std::collections::{BTreeMap, HashSet};
+use super::health::Faults;
+use super::ops::Op;
+use super::{Ack, Done, JournalStats, ServiceConfig, ServiceError, Shared, Snapshot};
+use crate::store::{Change, DurableMap, Pending, Recovered, Retention, now_nanos};
+use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
-use std::sync::mpsc::Receiver;
+use std::sync::mpsc::{Receiver, RecvTimeoutError, TryRecvError};
 use std::sync::{Arc, Mutex, PoisonError, RwLock};
+use std::time::{Duration, Instant};
 
-pub(super) struct Job {
-    pub scan: PreparedScan,
-    pub done: Done,
+/// Most scans integrated (and committed) together.
+const APPLY_BATCH: usize = 32;
+/// How often time-based retention runs.
+const PRUNE_EVERY: Duration = Duration::from_secs(10);
+
+/// A journaled scan on its way to integration, with whoever waits for it.
+pub(super) struct Waiting {
+    pub pending: Pending,
+    pub done: Option<Done>,
+    pub dropped_points: usize,
 }
 
-/// State the writer shares with readers of the service.
-pub(super) struct Shared {
-    pub snapshot: Arc<RwLock<Arc<Snapshot>>>,
-    pub sources: Arc<Mutex<BTreeMap<String, SourceStats>>>,
-    pub queued: Arc<AtomicUsize>,
-    pub integration_micros: Arc<AtomicU64>,
+/// What the writer is asked to do, in order.
+pub(super) enum Work {
+    Scans(Vec<Waiting>),
+    Op(Op, Box<dyn FnOnce(Result<Change, ServiceError>) + Send>),
 }
 
 pub(super) struct Writer {
-    file: MapFile,
-    map: EvidenceMap,
-    integrator: Integrator,
-    applied: HashSet<(String, u64)>,
-    version: u64,
-    threads: usize,
-    shared: Shared,
+    pub(super) map: DurableMap,
+    pub(super) shared: Arc<Shared>,
+    /// Journaled scans not yet integrated, and (in step) who waits for each.
+    pending: Vec<Pending>,
+    /// Who waits, dropped points, and whether the scan is counted in flight (it came from the
+    /// journal thread, not from the replay on open).
+    waiters: Vec<(Option<Done>, usize, bool)>,
+    last_prune: Instant,
+    retry: Duration,
 }
 
 impl Writer {
-    pub fn new(
-        file: MapFile,
-        map: EvidenceMap,
-        scans: Vec<(String, u64)>,
-        shared: Shared,
+    /// Replays the journaled scans of an opened map and sets up its shared state; a damaged
+    /// map (corrupt blocks, unreadable journaled scans) is read-only.
+    pub fn recover(
+        recovered: Recovered,
         config: &ServiceConfig,
-    ) -> Self {
-        Self {
-            integrator: Integrator::new(*map.params()),
-            version: scans.len() as u64,
-            applied: scans.into_iter().collect(),
-            file,
+    ) -> Result<(Arc<Shared>, Self), ServiceError> {
+        let Recovered { mut map, pending, lost } = recovered;
+        let faults = Faults::new(config.write_retry);
+        let mut left = Vec::new();
+        if !map.corrupt().is_empty() {
+            // Integrating next to a corrupt block would overwrite it: keep the scans journaled.
+            left = pending;
+        } else if !pending.is_empty()
+            && let Err(e) = map.apply(&pending)
+        {
+            // Cannot write now (e.g. a full disk): serve what is integrated, retry later.
+            faults.apply_failed(e.to_string());
+            left = pending;
+        }
+        if let Some(c) = map.corrupt().first() {
+            faults.set_damaged(format!(
+                "{} corrupt blocks (first at ({}, {}, {}): {}); run `bgkmap check`",
+                map.corrupt().len(),
+                c.key.x,
+                c.key.y,
+                c.key.z,
+                c.reason
+            ));
+        }
+        if let Some(e) = lost.first() {
+            faults.set_damaged(format!("{} acknowledged scans cannot be replayed: {e}", lost.len()));
+        }
+        let snapshot = Snapshot {
+            version: map.version(),
+            map: map.map().clone(),
+            corrupt: Arc::new(map.corrupt().to_vec()),
+        };
+        let shared = Arc::new(Shared {
+            snapshot: RwLock::new(Arc::new(snapshot)),
+            queued: AtomicUsize::new(0),
+            backlog: AtomicUsize::new(left.len()),
+            integration_micros: AtomicU64::new(0),
+            session: Mutex::new(BTreeMap::new()),
+            stats: Mutex::new(JournalStats {
+                content: Arc::new(map.journal().content()),
+                journal_bytes: map.stored_bytes(),
+                in_flight: BTreeMap::new(),
+            }),
+            faults,
+        });
+        let waiters = left.iter().map(|_| (None, 0, false)).collect();
+        let last_prune = Instant::now().checked_sub(PRUNE_EVERY).unwrap_or_else(Instant::now);
+        let writer = Self {
             map,
-            threads: config.threads_per_scan.max(1),
-            shared,
-        }
+            shared: shared.clone(),
+            pending: left,
+            waiters,
+            last_prune,
+            retry: config.write_retry,
+        };
+        Ok((shared, writer))
     }
 
-    /// Runs until every sender is gone and the queue is drained.
-    pub fn run(mut self, rx: Receiver<Job>) {
-        while let Ok(job) = rx.recv() {
-            let result = self.apply(&job.scan);
-            self.shared.queued.fetch_sub(1, Ordering::Relaxed);
-            self.count(&job.scan, &result);
-            (job.done)(result);
-        }
-    }
-
-    fn apply(&mut self, scan: &PreparedScan) -> Result<Ack, ServiceError> {
-        let id = (scan.source.clone(), scan.seq);
-        let ack = |applied, version| Ack { applied, version, dropped_points: scan.dropped_points };
-        if self.applied.contains(&id) {
-            return Ok(ack(false, self.version));
-        }
-        let t0 = std::time::Instant::now();
-        let delta = self.integrator.scan_delta_with_range(
-            &scan.points_world,
-            scan.origin_world,
-            self.threads,
-            scan.max_range_m,
-        );
-        let updated = self.map.blocks_after(&delta, 1);
-        self.shared.integration_micros.fetch_add(t0.elapsed().as_micros() as u64, Ordering::Relaxed);
-        self.integrator.recycle(delta);
-        // Persist first: the map only moves on once the file holds the scan.
-        let rows: Vec<_> = updated.iter().map(|(k, b)| (*k, b.as_deref())).collect();
-        self.file.commit(&rows, &[(scan.source.as_str(), scan.seq)])?;
-        self.map.set_blocks(updated);
-        self.applied.insert(id);
-        self.version += 1;
-        let snap = Arc::new(Snapshot { version: self.version, map: self.map.clone() });
-        *self.shared.snapshot.write().unwrap_or_else(PoisonError::into_inner) = snap;
-        Ok(ack(true, self.version))
-    }
-
-    fn count(&self, scan: &PreparedScan, result: &Result<Ack, ServiceError>) {
-        let mut sources = self.shared.sources.lock().unwrap_or_else(PoisonError::into_inner);
-        let s = sources.entry(scan.source.clone()).or_default();
-        s.received += 1;
-        match result {
-            Ok(a) if a.applied => {
-                s.applied += 1;
-                s.dropped_points += a.dropped_points as u64;
-                s.highest_seq = Some(s.highest_seq.map_or(scan.seq, |h| h.max(scan.seq)));
+    /// Runs until every sender is gone and all work is done (or cannot be written).
+    pub fn run(mut self, rx: Receiver<Work>) {
+        loop {
+            let wait = if self.pending.is_empty() { PRUNE_EVERY } else { self.retry };
+            match rx.recv_timeout(wait) {
+                Ok(work) => self.take(work),
+                Err(RecvTimeoutError::Timeout) => {}
+                Err(RecvTimeoutError::Disconnected) => break,
             }
-            Ok(_) => s.duplicates += 1,
-            Err(_) => s.rejected += 1,
+            while self.pending.len() < APPLY_BATCH {
+                match rx.try_recv() {
+                    Ok(work) => self.take(work),
+                    Err(TryRecvError::Empty | TryRecvError::Disconnected) => break,
+                }
+            }
+            self.flush();
+            self.housekeeping();
         }
+        self.flush();
+        self.fail_waiters(|| ServiceError::ShuttingDown);
+    }
+
+    fn take(&mut self, work: Work) {
+        match work {
+            Work::Scans(w) => {
+                for w in w {
+                    self.pending.push(w.pending);
+                    self.waiters.push((w.done, w.dropped_points, true));
+                }
+            }
+            Work::Op(op, done) => {
+                // Operations see every scan journaled before them.
+                self.flush();
+                if self.pending.is_empty() {
+                    done(self.run_op(op));
+                } else {
+                    let reason = self.shared.faults.read_only().unwrap_or_default();
+                    done(Err(ServiceError::ReadOnly { map: self.name(), reason }));
+                }
+            }
+        }
+    }
+
+    pub(super) fn name(&self) -> String {
+        self.map.path().file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default()
+    }
+
+    /// Integrates the pending scans (unless backing off after a failed write).
+    fn flush(&mut self) {
+        if self.pending.is_empty() || self.shared.faults.apply_backing_off() || !self.map.corrupt().is_empty()
+        {
+            return;
+        }
+        let t0 = Instant::now();
+        match self.map.apply(&self.pending) {
+            Ok(change) => {
+                let us = t0.elapsed().as_micros() as u64;
+                self.shared.integration_micros.fetch_add(us, Ordering::Relaxed);
+                self.shared.faults.apply_ok();
+                self.shared.backlog.fetch_sub(self.pending.len(), Ordering::Relaxed);
+                let in_flight = self
+                    .pending
+                    .iter()
+                    .zip(&self.waiters)
+                    .filter(|(_, w)| w.2)
+                    .map(|(p, _)| p.source.as_str());
+                self.publish_applied(in_flight);
+                self.pending.clear();
+                for (done, dropped_points, _) in self.waiters.drain(..) {
+                    if let Some(done) = done {
+                        done(Ok(Ack {
+                            applied: true,
+                            integrated: true,
+                            version: change.version,
+                            dropped_points,
+                        }));
+                    }
+                }
+            }
+            Err(e) => {
+                let reason = e.to_string();
+                self.shared.faults.apply_failed(reason.clone());
+                let map = self.name();
+                // The scans are durable; those waiting for integration learn it is delayed.
+                self.fail_waiters(|| ServiceError::ReadOnly {
+                    map: map.clone(),
+                    reason: format!("journaled but not yet integrated: {reason}"),
+                });
+            }
+        }
+    }
+
+    fn fail_waiters(&mut self, err: impl Fn() -> ServiceError) {
+        for (done, _, _) in &mut self.waiters {
+            if let Some(done) = done.take() {
+                done(Err(err()));
+            }
+        }
+    }
+
+    /// Publishes the map as it is now: a new snapshot and the journal's content.
+    pub(super) fn publish(&self) {
+        self.publish_applied(std::iter::empty());
+    }
+
+    /// As [`Self::publish`], with the scans of `applied` sources (just integrated) no longer in
+    /// flight.
+    fn publish_applied<'a>(&self, applied: impl Iterator<Item = &'a str>) {
+        let snap = Snapshot {
+            version: self.map.version(),
+            map: self.map.map().clone(),
+            corrupt: self.shared.snapshot().corrupt.clone(),
+        };
+        *self.shared.snapshot.write().unwrap_or_else(PoisonError::into_inner) = Arc::new(snap);
+        let content = Arc::new(self.map.journal().content());
+        let mut st = super::lock(&self.shared.stats);
+        st.content = content;
+        st.journal_bytes = self.map.stored_bytes();
+        for source in applied {
+            if let Some(n) = st.in_flight.get_mut(source) {
+                *n = n.saturating_sub(1);
+            }
+        }
+        st.in_flight.retain(|_, n| *n > 0);
+    }
+
+    /// Journal retention: after every batch for size limits, every [`PRUNE_EVERY`] for age.
+    fn housekeeping(&mut self) {
+        let due = match self.map_retention() {
+            Retention::All => false,
+            Retention::None | Retention::MaxAgeSeconds(_) => self.last_prune.elapsed() >= PRUNE_EVERY,
+            Retention::MaxBytes(max) => self.map.stored_bytes() > max,
+        };
+        if !due || !self.pending.is_empty() {
+            return;
+        }
+        self.last_prune = Instant::now();
+        match self.map.prune(now_nanos()) {
+            Ok(0) => {}
+            Ok(_) => self.publish(),
+            Err(e) => self.shared.faults.apply_failed(e.to_string()),
+        }
+    }
+
+    fn map_retention(&self) -> Retention {
+        self.map.retention()
     }
 }

@@ -1,36 +1,53 @@
-//! The map file: one SQLite database per map (bundled SQLite).
+//! The map file: one SQLite database per map (bundled SQLite), holding the map's evidence blocks
+//! and the journal of the scans that made them.
 //!
 //! A map file is a public format: other programs (and a Python user with `sqlite3`) may read it.
-//! It must not depend on anything above the core.
+//! This module must not depend on anything above the core (no service, no network); it uses the
+//! core to recompute a scan's evidence from its journal record.
 //!
-//! # Format version 1
+//! # Format version 2
+//!
+//! (Version 1, without the journal, was never released; files of version 1 are refused like any
+//! other version.)
 //!
 //! SQLite header fields:
 //! - `PRAGMA application_id` = `0x42474B4D` (ASCII "BGKM"): identifies a bgkmap map file.
 //! - `PRAGMA user_version` = format version ([`FORMAT_VERSION`]). A file of another version is
-//!   refused with [`StoreError::Version`].
+//!   refused with [`StoreError::Version`], which says whether it is older or newer.
 //!
-//! Tables:
+//! Tables (the `sql` of `sqlite_master` is exactly this text; [`SCHEMA`]):
 //!
 //! ```sql
-//! CREATE TABLE meta   (key TEXT PRIMARY KEY, value TEXT NOT NULL) WITHOUT ROWID;
+//! CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL) WITHOUT ROWID;
 //! CREATE TABLE params (name TEXT PRIMARY KEY, value TEXT NOT NULL) WITHOUT ROWID;
 //! CREATE TABLE blocks (bx INTEGER NOT NULL, by INTEGER NOT NULL, bz INTEGER NOT NULL,
-//!                      data BLOB NOT NULL, crc32 INTEGER NOT NULL,
-//!                      PRIMARY KEY (bx, by, bz)) WITHOUT ROWID;
-//! CREATE TABLE scans  (source TEXT NOT NULL, seq INTEGER NOT NULL,
-//!                      PRIMARY KEY (source, seq)) WITHOUT ROWID;
+//!   data BLOB NOT NULL, crc32 INTEGER NOT NULL, PRIMARY KEY (bx, by, bz)) WITHOUT ROWID;
+//! CREATE TABLE scans (id INTEGER PRIMARY KEY, source TEXT NOT NULL, seq INTEGER NOT NULL,
+//!   stamp_nanos INTEGER NOT NULL, received_nanos INTEGER NOT NULL, status INTEGER NOT NULL,
+//!   record_bytes INTEGER NOT NULL, crc32 INTEGER NOT NULL, UNIQUE (source, seq));
+//! CREATE TABLE scan_records (id INTEGER PRIMARY KEY, record BLOB NOT NULL);
 //! ```
 //!
-//! - `meta`: `format` = `bgkmap`, `format_version` = `1`, `block_edge` = `8` (cells per block edge),
-//!   `fixed_shift` = `24` (fractional bits of the evidence sums), `writer` = the crate version.
+//! - `meta`: `format` = `bgkmap`, `format_version` = `2`, `block_edge` = `8` (cells per block
+//!   edge), `fixed_shift` = `24` (fractional bits of the evidence sums), `writer` = the crate
+//!   version that created the file, `version` = the map version (decimal): +1 for every scan
+//!   integrated and for every retraction, re-posing or merge; it never decreases.
 //! - `params`: every map parameter by its CLI flag name ([`MapParams::to_pairs`]), values in
 //!   Rust's shortest round-trip decimal form (parsing gives the same f64 bits).
-//! - `scans`: the identities `(source, seq)` of the scans whose evidence the blocks hold (maps
-//!   built offline from files leave it empty). A server never applies a listed scan again.
 //! - `blocks`: one row per block holding evidence. `(bx, by, bz)` is the block key: cell key
 //!   `>> 3` per axis (cell key = `floor(x / resolution)`). `crc32` is the CRC-32 (IEEE, as zlib)
 //!   of `data`.
+//! - `scans`: the journal, one row per scan identity `(source, seq)` the map ever accepted, in
+//!   arrival order (`id`). `seq` is in `[0, 2^63)`. `stamp_nanos` is the scan's time (the
+//!   client's, else the arrival time; Unix nanoseconds), `received_nanos` its arrival time.
+//!   `status`: `0` journaled (durable, evidence not yet in `blocks`), `1` applied (evidence in
+//!   `blocks`, raw scan kept), `2` applied with the raw scan pruned (retention), `3` retracted
+//!   (evidence removed; the identity stays, so the scan is never accepted again).
+//!   `record_bytes` is the length of the record as written. `crc32` is the scan's fingerprint:
+//!   CRC-32 of `source` (UTF-8) ‖ `0x00` ‖ `seq` (u64 LE) ‖ the record's *canonical* bytes (the
+//!   record with points codec `0`, see below). It is kept after pruning, so two maps can tell
+//!   whether they hold the same scan; stamps and status are not covered.
+//! - `scan_records`: the raw scan of journal row `id` (status `0` and `1` only).
 //!
 //! Block `data`, byte by byte:
 //!
@@ -45,23 +62,68 @@
 //! evidence when `A ≠ 0` or `B ≠ 0`; absent cells have `A = B = 0`. The encoding must consume the
 //! blob exactly.
 //!
-//! Files are written whole to a temporary sibling and renamed into place, so a failed write never
-//! leaves a half-written map. (The scan journal and in-place incremental updates of a later
-//! format version add tables; readers of version 1 refuse those files by version.)
+//! Scan `record`, byte by byte (little-endian):
+//!
+//! | offset | size | content |
+//! |---|---|---|
+//! | 0 | 1 | record encoding, `1` |
+//! | 1 | 1 | frame of the points: `0` world, `1` sensor (`p_world = q·p + t`) |
+//! | 2 | 1 | points codec: `0` raw, `1` XOR-shuffle-LZF |
+//! | 3 | 1 | flags: bit 0 set ⇔ the scan has its own max range; other bits 0 |
+//! | 4 | 24 | `world_from_sensor` translation x, y, z (f64, metres) |
+//! | 28 | 32 | `world_from_sensor` rotation w, x, y, z (f64 unit quaternion) |
+//! | 60 | 8 | the scan's max range (f64, metres); `0` when flag bit 0 is clear |
+//! | 68 | 4 | `n`, the number of points (u32) |
+//! | 72 | … | the points |
+//!
+//! Points, codec `0`: `12·n` bytes, x y z f32 per point, in the order received (only finite
+//! points are journaled). Codec `1`: an LZF stream (as `io::lzf`, liblzf's format) that decodes
+//! to exactly `12·n` bytes `s`; with `w[i]` the u32 bits of value `i` of the raw sequence
+//! `x0 y0 z0 x1 …` and `d[i] = w[i] XOR w[i−3]` (`d[i] = w[i]` for `i < 3`),
+//! `s[k·3n + i]` = byte `k` (0 = least significant) of `d[i]`. Writers pick codec 1 only when it
+//! is smaller. The canonical bytes of a record are the first 72 bytes with byte 2 set to `0`,
+//! followed by the `12·n` raw point bytes.
+//!
+//! The evidence of a scan is a pure function of its record and the map parameters
+//! ([`RawScan::delta`](crate::core::RawScan::delta)), so `blocks` = the sum of the deltas of every
+//! applied scan (plus evidence from maps merged in without a journal, e.g. `bgkmap build` without
+//! `--source`). That is what makes replay, retraction, re-posing and merges exact.
+//!
+//! # Writing
+//!
+//! A process writing a map file in place (the server, `bgkmap retract`, `repose`) holds an
+//! exclusive lock on the sibling file `<file>-lock` ([`lock::MapLock`]) and uses WAL mode with
+//! `synchronous = FULL`: a committed transaction is on disk, which is what an acknowledgement
+//! means. A scan is journaled (status `0`) in one transaction before it is acknowledged; its
+//! evidence goes into `blocks` together with the status change to `1` in a later transaction.
+//! Opening a file replays journaled scans. New files (`bgkmap build`, `merge`) are written whole
+//! to a temporary sibling and renamed into place, so a failed command never leaves a
+//! half-written map. Readers need no lock.
 
-use crate::core::kernel::FIXED_SHIFT;
-use crate::core::key::{BLOCK_CELLS, BLOCK_EDGE, BlockKey};
 use crate::core::{EvidenceMap, MapParams};
-use rusqlite::{Connection, OpenFlags, OptionalExtension, params};
 use std::path::{Path, PathBuf};
 
+pub mod check;
 mod codec;
+mod durable;
 mod file;
+pub mod journal;
+pub mod lock;
+pub mod ops;
+mod reader;
+pub mod record;
+mod schema;
+
 pub use codec::{decode_block, encode_block};
-pub use file::{MapFile, OpenedMap, ScanId};
+pub use durable::{Change, DurableMap, Pending, Recovered, Retention};
+pub use file::{Commit, ImportedScan, MapFile, NewScan, OpenedMap};
+pub use journal::{JournalEntry, JournalIndex, ScanId, ScanStatus};
+pub use ops::{OpError, ScanSelector};
+pub use reader::{CorruptBlock, MapReader};
+pub use schema::SCHEMA;
 
 /// The format version this build reads and writes.
-pub const FORMAT_VERSION: i64 = 1;
+pub const FORMAT_VERSION: i64 = 2;
 /// `PRAGMA application_id` of a bgkmap map file ("BGKM").
 pub const APPLICATION_ID: i64 = 0x4247_4B4D;
 
@@ -71,13 +133,17 @@ pub enum StoreError {
     #[error("{path}: not a bgkmap map file ({reason})")]
     NotAMap { path: PathBuf, reason: String },
     #[error(
-        "{path}: map file format version {found} is not supported (this build reads version {FORMAT_VERSION})"
+        "{path}: map file format version {found} is not supported (this build reads version {FORMAT_VERSION}){hint}"
     )]
-    Version { path: PathBuf, found: i64 },
+    Version { path: PathBuf, found: i64, hint: &'static str },
     #[error("{path}: block ({x}, {y}, {z}) is corrupt: {reason}")]
     CorruptBlock { path: PathBuf, x: i32, y: i32, z: i32, reason: String },
+    #[error("{path}: journal record of scan ({source_name}, {seq}) is corrupt: {reason}")]
+    CorruptRecord { path: PathBuf, source_name: String, seq: u64, reason: String },
     #[error("{path}: bad map parameters: {reason}")]
     Params { path: PathBuf, reason: String },
+    #[error("{path}: the map file is in use by another process (lock {lock} is held)")]
+    Locked { path: PathBuf, lock: PathBuf },
     // The cause is part of the message (not a `source`), so it is printed once.
     #[error("{path}: {error}")]
     Sqlite { path: PathBuf, error: rusqlite::Error },
@@ -85,20 +151,46 @@ pub enum StoreError {
     Io { path: PathBuf, error: std::io::Error },
 }
 
-fn sql(path: &Path) -> impl Fn(rusqlite::Error) -> StoreError + '_ {
+impl StoreError {
+    /// True for errors that mean stored data is damaged (a checksum or decoding failure).
+    pub fn is_corruption(&self) -> bool {
+        matches!(self, Self::CorruptBlock { .. } | Self::CorruptRecord { .. })
+    }
+}
+
+pub(crate) fn sql(path: &Path) -> impl Fn(rusqlite::Error) -> StoreError + '_ {
     move |error| StoreError::Sqlite { path: path.to_path_buf(), error }
 }
 
-/// Writes `map` to `path` atomically (temporary file + rename). An existing file is replaced.
+/// Writes `map` to a new file at `path` atomically (temporary file + rename), without journal;
+/// its version is 1 (0 if it is empty). An existing file is replaced.
 pub fn save_map(path: &Path, map: &EvidenceMap) -> Result<(), StoreError> {
+    save_map_with_scans(path, map, &[], u64::from(map.block_count() > 0))
+}
+
+/// As [`save_map`], journaling `scans` (whose evidence `map` holds) as applied scans, with map
+/// version `version`.
+pub fn save_map_with_scans(
+    path: &Path,
+    map: &EvidenceMap,
+    scans: &[NewScan],
+    version: u64,
+) -> Result<(), StoreError> {
     let tmp = temp_sibling(path);
-    let result = write_new(&tmp, map).and_then(|()| {
+    let result = file::write_new(&tmp, map, scans, version).and_then(|()| {
         std::fs::rename(&tmp, path).map_err(|error| StoreError::Io { path: path.to_path_buf(), error })
     });
     if result.is_err() {
         let _ = std::fs::remove_file(&tmp);
     }
     result
+}
+
+/// The current time as Unix nanoseconds (the journal's clock).
+pub fn now_nanos() -> i64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| i64::try_from(d.as_nanos()).unwrap_or(i64::MAX))
 }
 
 /// The temporary sibling a file is written to before it is renamed over `path`.
@@ -108,131 +200,19 @@ pub fn temp_sibling(path: &Path) -> PathBuf {
     path.with_file_name(name)
 }
 
-fn write_new(path: &Path, map: &EvidenceMap) -> Result<(), StoreError> {
-    let _ = std::fs::remove_file(path);
-    let mut conn = Connection::open(path).map_err(sql(path))?;
-    create_schema(&mut conn, path, map.params())?;
-    let mut file = MapFile::from_conn(conn, path);
-    let keys = map.block_keys_sorted();
-    let rows: Vec<_> = keys.iter().map(|k| (*k, map.block(*k))).collect();
-    file.commit(&rows, &[])?;
-    file.close()
-}
-
-/// Creates the tables and writes the format header and parameters of a new, empty map file.
-fn create_schema(conn: &mut Connection, path: &Path, map_params: &MapParams) -> Result<(), StoreError> {
-    let e = sql(path);
-    conn.execute_batch(&format!(
-        "PRAGMA application_id = {APPLICATION_ID}; PRAGMA user_version = {FORMAT_VERSION};
-         CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL) WITHOUT ROWID;
-         CREATE TABLE params (name TEXT PRIMARY KEY, value TEXT NOT NULL) WITHOUT ROWID;
-         CREATE TABLE blocks (bx INTEGER NOT NULL, by INTEGER NOT NULL, bz INTEGER NOT NULL,
-                              data BLOB NOT NULL, crc32 INTEGER NOT NULL,
-                              PRIMARY KEY (bx, by, bz)) WITHOUT ROWID;
-         CREATE TABLE scans (source TEXT NOT NULL, seq INTEGER NOT NULL,
-                             PRIMARY KEY (source, seq)) WITHOUT ROWID;"
-    ))
-    .map_err(&e)?;
-    let tx = conn.transaction().map_err(&e)?;
-    {
-        let mut meta = tx.prepare("INSERT INTO meta (key, value) VALUES (?1, ?2)").map_err(&e)?;
-        for (k, v) in [
-            ("format", "bgkmap".to_string()),
-            ("format_version", FORMAT_VERSION.to_string()),
-            ("block_edge", BLOCK_EDGE.to_string()),
-            ("fixed_shift", FIXED_SHIFT.to_string()),
-            ("writer", format!("bgkmap {}", env!("CARGO_PKG_VERSION"))),
-        ] {
-            meta.execute(params![k, v]).map_err(&e)?;
-        }
-        let mut p = tx.prepare("INSERT INTO params (name, value) VALUES (?1, ?2)").map_err(&e)?;
-        for (k, v) in map_params.to_pairs() {
-            p.execute(params![k, v]).map_err(&e)?;
-        }
-    }
-    tx.commit().map_err(&e)
-}
-
-/// Opens `path` read-only, checks it is a bgkmap file of this version, and returns the connection.
-fn open_checked(path: &Path) -> Result<Connection, StoreError> {
-    open_with(path, OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX)
-}
-
-fn open_with(path: &Path, flags: OpenFlags) -> Result<Connection, StoreError> {
-    if !path.is_file() {
-        let error = std::io::Error::new(std::io::ErrorKind::NotFound, "no such map file");
-        return Err(StoreError::Io { path: path.to_path_buf(), error });
-    }
-    let not_a_map = |reason: String| StoreError::NotAMap { path: path.to_path_buf(), reason };
-    let conn = Connection::open_with_flags(path, flags).map_err(|err| not_a_map(err.to_string()))?;
-    let app: i64 = conn
-        .query_row("PRAGMA application_id", [], |r| r.get(0))
-        .map_err(|err| not_a_map(err.to_string()))?;
-    if app != APPLICATION_ID {
-        return Err(not_a_map(format!("application_id is {app:#x}, expected {APPLICATION_ID:#x}")));
-    }
-    let version: i64 = conn.query_row("PRAGMA user_version", [], |r| r.get(0)).map_err(sql(path))?;
-    if version != FORMAT_VERSION {
-        return Err(StoreError::Version { path: path.to_path_buf(), found: version });
-    }
-    Ok(conn)
-}
-
 /// Reads the parameters of a map file without loading its blocks.
 pub fn load_params(path: &Path) -> Result<MapParams, StoreError> {
-    read_params(&open_checked(path)?, path)
+    Ok(*MapReader::open(path)?.params())
 }
 
-fn read_params(conn: &Connection, path: &Path) -> Result<MapParams, StoreError> {
-    let e = sql(path);
-    let mut stmt = conn.prepare("SELECT name, value FROM params").map_err(&e)?;
-    let pairs: Vec<(String, String)> = stmt
-        .query_map([], |r| Ok((r.get(0)?, r.get(1)?)))
-        .map_err(&e)?
-        .collect::<Result<_, _>>()
-        .map_err(&e)?;
-    MapParams::from_pairs(pairs.iter().map(|(k, v)| (k.as_str(), v.as_str())))
-        .map_err(|err| StoreError::Params { path: path.to_path_buf(), reason: err.to_string() })
-}
-
-/// Loads a whole map, verifying every block's checksum and encoding.
+/// Loads a whole map for reading: every block (checksums and encodings verified; a corrupt
+/// block is an error) plus the evidence of journaled scans not yet applied (replayed in memory,
+/// so a file left by a crashed server reads as everything it acknowledged).
 pub fn load_map(path: &Path) -> Result<EvidenceMap, StoreError> {
-    read_map(&open_checked(path)?, path)
+    MapReader::open(path)?.load_map()
 }
 
-fn read_map(conn: &Connection, path: &Path) -> Result<EvidenceMap, StoreError> {
-    let e = sql(path);
-    let edge: Option<String> = conn
-        .query_row("SELECT value FROM meta WHERE key = 'block_edge'", [], |r| r.get(0))
-        .optional()
-        .map_err(&e)?;
-    if edge.as_deref() != Some(&BLOCK_EDGE.to_string()) {
-        return Err(StoreError::NotAMap { path: path.to_path_buf(), reason: format!("block_edge {edge:?}") });
-    }
-    let mut map = EvidenceMap::new(read_params(conn, path)?);
-    let mut stmt = conn.prepare("SELECT bx, by, bz, data, crc32 FROM blocks").map_err(&e)?;
-    let mut rows = stmt.query([]).map_err(&e)?;
-    while let Some(row) = rows.next().map_err(&e)? {
-        let key = BlockKey::new(row.get(0).map_err(&e)?, row.get(1).map_err(&e)?, row.get(2).map_err(&e)?);
-        let data: Vec<u8> = row.get(3).map_err(&e)?;
-        let crc: i64 = row.get(4).map_err(&e)?;
-        let corrupt = |reason: String| StoreError::CorruptBlock {
-            path: path.to_path_buf(),
-            x: key.x,
-            y: key.y,
-            z: key.z,
-            reason,
-        };
-        if i64::from(crc32fast::hash(&data)) != crc {
-            return Err(corrupt("checksum mismatch".into()));
-        }
-        let block = decode_block(&data).map_err(corrupt)?;
-        map.insert_block(key, block);
-    }
-    Ok(map)
-}
-
-const _: () = assert!(BLOCK_CELLS == 512);
-
+#[cfg(test)]
+mod durable_tests;
 #[cfg(test)]
 mod tests;

@@ -1,6 +1,7 @@
 use super::*;
-use crate::core::Integrator;
 use crate::core::evidence::BlockEvidence;
+use crate::core::{BlockKey, Integrator};
+use rusqlite::{Connection, params};
 
 fn small_map() -> EvidenceMap {
     let params = MapParams { max_range_m: 5.0, ..Default::default() };
@@ -11,7 +12,7 @@ fn small_map() -> EvidenceMap {
     map
 }
 
-fn cells(map: &EvidenceMap) -> Vec<(BlockKey, Vec<(i64, i64)>)> {
+pub(super) fn cells(map: &EvidenceMap) -> Vec<(BlockKey, Vec<(i64, i64)>)> {
     map.block_keys_sorted()
         .into_iter()
         .map(|k| {
@@ -36,6 +37,19 @@ fn save_load_round_trip_is_exact() {
 }
 
 #[test]
+fn the_schema_in_the_file_is_the_documented_one() {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("m.bgkmap");
+    save_map(&path, &small_map()).unwrap();
+    let c = Connection::open(&path).unwrap();
+    let mut stmt = c.prepare("SELECT sql FROM sqlite_master WHERE type = 'table' ORDER BY rowid").unwrap();
+    let sqls: Vec<String> = stmt.query_map([], |r| r.get(0)).unwrap().map(Result::unwrap).collect();
+    assert_eq!(sqls, SCHEMA);
+    let app: i64 = c.query_row("PRAGMA application_id", [], |r| r.get(0)).unwrap();
+    assert_eq!(app.to_be_bytes()[4..], *b"BGKM");
+}
+
+#[test]
 fn codec_round_trip_extremes_and_rejects_garbage() {
     let mut b = BlockEvidence::zeroed();
     b.a[0] = i64::MAX;
@@ -53,13 +67,17 @@ fn codec_round_trip_extremes_and_rejects_garbage() {
 }
 
 #[test]
-fn wrong_version_and_non_map_files_are_clear_errors() {
+fn other_versions_and_non_map_files_are_clear_errors() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("m.bgkmap");
     save_map(&path, &small_map()).unwrap();
     Connection::open(&path).unwrap().execute_batch("PRAGMA user_version = 99").unwrap();
     let err = load_map(&path).unwrap_err().to_string();
-    assert!(err.contains("format version 99") && err.contains("m.bgkmap"), "{err}");
+    assert!(err.contains("format version 99") && err.contains("m.bgkmap") && err.contains("newer"), "{err}");
+    assert!(MapFile::open(&path).is_err(), "writers refuse it too");
+    Connection::open(&path).unwrap().execute_batch("PRAGMA user_version = 1").unwrap();
+    let err = load_map(&path).unwrap_err().to_string();
+    assert!(err.contains("format version 1 is not supported") && !err.contains("newer"), "{err}");
 
     let junk = dir.path().join("junk.bgkmap");
     std::fs::write(&junk, b"this is not sqlite at all, not even close............................").unwrap();
@@ -67,30 +85,52 @@ fn wrong_version_and_non_map_files_are_clear_errors() {
     assert!(matches!(load_map(&dir.path().join("missing")), Err(StoreError::Io { .. })));
 }
 
+/// Flips one byte of a block's data in the file itself (not through SQL): SQLite reads the page
+/// fine, the block's checksum catches it.
+pub(super) fn flip_block_byte(path: &std::path::Path) -> BlockKey {
+    let c = Connection::open(path).unwrap();
+    let (x, y, z, data): (i32, i32, i32, Vec<u8>) = c
+        .query_row(
+            "SELECT bx, by, bz, data FROM blocks WHERE length(data) < 2000 ORDER BY bx, by, bz LIMIT 1",
+            [],
+            |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?)),
+        )
+        .unwrap();
+    c.execute_batch("PRAGMA wal_checkpoint(TRUNCATE)").unwrap();
+    drop(c);
+    let mut bytes = std::fs::read(path).unwrap();
+    let at = bytes.windows(data.len()).position(|w| w == data.as_slice()).expect("block bytes in the file");
+    bytes[at + data.len() / 2] ^= 0x10;
+    std::fs::write(path, bytes).unwrap();
+    BlockKey::new(x, y, z)
+}
+
 #[test]
 fn corrupt_block_is_reported_with_its_key() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("m.bgkmap");
     save_map(&path, &small_map()).unwrap();
-    Connection::open(&path)
-        .unwrap()
-        .execute_batch(
-            "UPDATE blocks SET data = zeroblob(70) WHERE rowid IN (SELECT rowid FROM blocks LIMIT 1)",
-        )
-        .unwrap_or_else(|_| {
-            let c = Connection::open(&path).unwrap();
-            let (x, y, z): (i32, i32, i32) = c
-                .query_row("SELECT bx, by, bz FROM blocks LIMIT 1", [], |r| {
-                    Ok((r.get(0)?, r.get(1)?, r.get(2)?))
-                })
-                .unwrap();
-            c.execute(
-                "UPDATE blocks SET data = X'01' WHERE bx = ?1 AND by = ?2 AND bz = ?3",
-                params![x, y, z],
-            )
-            .unwrap();
-        });
+    let key = flip_block_byte(&path);
     let err = load_map(&path).unwrap_err();
-    assert!(matches!(err, StoreError::CorruptBlock { .. }), "{err}");
+    assert!(
+        matches!(err, StoreError::CorruptBlock { x, y, z, .. } if BlockKey::new(x, y, z) == key),
+        "{err}"
+    );
     assert!(err.to_string().contains("checksum"), "{err}");
+    let report = check::check_map(&path).unwrap();
+    assert!(!report.is_ok());
+    assert_eq!(report.corrupt_blocks.len(), 1);
+    assert_eq!(report.corrupt_blocks[0].key, key);
+    // A writer opens it anyway and keeps the other blocks.
+    let opened = MapFile::open(&path).unwrap();
+    assert_eq!(opened.corrupt.len(), 1);
+    assert_eq!(opened.map.block_count() + 1, small_map().block_count());
+    // Damage through SQL is found as well.
+    let c = Connection::open(&path).unwrap();
+    c.execute(
+        "UPDATE blocks SET data = X'01' WHERE bx = ?1 AND by = ?2 AND bz = ?3",
+        params![key.x, key.y, key.z],
+    )
+    .unwrap();
+    assert!(matches!(load_map(&path), Err(StoreError::CorruptBlock { .. })));
 }

@@ -216,8 +216,23 @@ pub struct ServeProcess {
 /// Starts `bgkmap serve --data-dir DATA_DIR --grpc-listen 127.0.0.1:0 --http-listen 127.0.0.1:0
 /// EXTRA…` and waits (up to 60 s) until it prints both listening addresses.
 pub fn start_serve(data_dir: &Path, extra: &[&str]) -> ServeProcess {
+    start_serve_wrapped(data_dir, extra, &[])
+}
+
+/// As [`start_serve`], run through `wrapper` (a command that ends by exec'ing its arguments,
+/// e.g. `["prlimit", "--fsize=1000000:unlimited", "--"]`), so the server keeps the child's pid.
+pub fn start_serve_wrapped(data_dir: &Path, extra: &[&str], wrapper: &[&str]) -> ServeProcess {
     use std::io::{BufRead, Read};
-    let mut child = Command::new(env!("CARGO_BIN_EXE_bgkmap"))
+    let bin = env!("CARGO_BIN_EXE_bgkmap");
+    let mut cmd = match wrapper.split_first() {
+        None => Command::new(bin),
+        Some((program, args)) => {
+            let mut c = Command::new(program);
+            c.args(args).arg(bin);
+            c
+        }
+    };
+    let mut child = cmd
         .arg("serve")
         .arg("--data-dir")
         .arg(data_dir)
@@ -298,6 +313,18 @@ impl ServeProcess {
         self.stderr.lock().unwrap().clone()
     }
 
+    /// The server's process id.
+    pub fn pid(&self) -> u32 {
+        self.child.as_ref().unwrap().id()
+    }
+
+    /// Kills the server with SIGKILL (no draining, no flushing) and reaps it.
+    pub fn kill(mut self) {
+        let mut child = self.child.take().unwrap();
+        child.kill().unwrap();
+        child.wait().unwrap();
+    }
+
     /// Sends SIGTERM and waits (up to 60 s) for the process to exit; returns its status.
     pub fn terminate(mut self) -> std::process::ExitStatus {
         let mut child = self.child.take().unwrap();
@@ -325,4 +352,22 @@ impl Drop for ServeProcess {
             let _ = child.wait();
         }
     }
+}
+
+/// One HTTP/1.1 request over a fresh connection (`Connection: close`); returns the status code
+/// and the whole response text (headers and body).
+pub fn http_request(addr: std::net::SocketAddr, method: &str, path: &str, body: &[u8]) -> (u16, String) {
+    use std::io::{Read, Write};
+    let mut s = std::net::TcpStream::connect(addr).unwrap();
+    let head = format!(
+        "{method} {path} HTTP/1.1\r\nHost: {addr}\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n",
+        body.len()
+    );
+    s.write_all(head.as_bytes()).unwrap();
+    let _ = s.write_all(body);
+    let mut out = Vec::new();
+    let _ = s.read_to_end(&mut out);
+    let text = String::from_utf8_lossy(&out).to_string();
+    let code = text.split_whitespace().nth(1).and_then(|c| c.parse().ok()).unwrap_or(0);
+    (code, text)
 }

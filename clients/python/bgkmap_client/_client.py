@@ -80,6 +80,7 @@ _HTTP_TO_GRPC = {
     404: "NOT_FOUND",
     405: "UNIMPLEMENTED",
     409: "ALREADY_EXISTS",
+    412: "FAILED_PRECONDITION",
     # The box query answers 413 where gRPC answers INVALID_ARGUMENT (a box over the cell limit).
     413: "INVALID_ARGUMENT",
     415: "INVALID_ARGUMENT",
@@ -328,10 +329,18 @@ def _info_from_pb(m: Any) -> Dict[str, Any]:
                 "duplicates": int(s.duplicates),
                 "rejected": int(s.rejected),
                 "highest_seq": int(s.highest_seq) if s.HasField("highest_seq") else None,
+                "pending": int(s.pending),
+                "gaps": int(s.gaps),
+                "pruned": int(s.pruned),
+                "retracted": int(s.retracted),
                 "dropped_points": int(s.dropped_points),
             }
             for s in m.sources
         },
+        "scans": int(m.scans),
+        "journal_bytes": int(m.journal_bytes),
+        "corrupt_blocks": int(m.corrupt_blocks),
+        "read_only": m.read_only or None,
     }
 
 
@@ -351,10 +360,18 @@ def _info_from_json(j: Mapping[str, Any]) -> Dict[str, Any]:
                 "duplicates": int(s["duplicates"]),
                 "rejected": int(s["rejected"]),
                 "highest_seq": None if s.get("highest_seq") is None else int(s["highest_seq"]),
+                "pending": int(s["pending"]),
+                "gaps": int(s["gaps"]),
+                "pruned": int(s["pruned"]),
+                "retracted": int(s["retracted"]),
                 "dropped_points": int(s.get("dropped_points", 0)),
             }
             for name, s in j.get("sources", {}).items()
         },
+        "scans": int(j["scans"]),
+        "journal_bytes": int(j["journal_bytes"]),
+        "corrupt_blocks": int(j["corrupt_blocks"]),
+        "read_only": j.get("read_only"),
     }
 
 
@@ -539,8 +556,10 @@ class Client:
         """Parameters and statistics of one map.
 
         Returns ``{"map", "params": {name: value, …} (every parameter of PARAM_NAMES),
-        "version" (scans applied), "blocks", "cells_with_evidence", "queued",
-        "sources": {source: {"received", "applied", "duplicates", "rejected", "highest_seq",
+        "version" (+1 per integrated scan and per merge / retraction / re-posing), "scans" (in
+        the map), "blocks", "cells_with_evidence", "queued", "journal_bytes", "corrupt_blocks",
+        "read_only" (None, or why ingest is refused), "sources": {source: {"received", "applied",
+        "duplicates", "rejected", "highest_seq", "pending", "gaps", "pruned", "retracted",
         "dropped_points"}}}``.
         Unknown maps raise ``BgkmapError`` ``NOT_FOUND``.
         """
@@ -609,8 +628,10 @@ class Client:
         seq: int,
         frame: Literal["world", "sensor"] = "world",
         max_range: Optional[float] = None,
+        wait_applied: bool = True,
     ) -> Dict[str, Any]:
-        """Inserts one scan and waits until the server has applied and stored it.
+        """Inserts one scan and waits until the server has integrated it (or, with
+        ``wait_applied=False``, only until it is durable in the map's journal — faster).
 
         Args:
             map: map name.
@@ -622,23 +643,31 @@ class Client:
             frame: ``"world"`` (points in the map frame) or ``"sensor"``
                 (``p_world = rotation · p + translation``).
             max_range: the sensor's own maximum range (m), capped by the map's.
+            wait_applied: answer once the scan is integrated and visible to queries
+                (read-your-writes); otherwise once it is durable.
 
         Returns:
-            ``{"applied": bool, "version": int (scans applied in the map), "dropped_points": int}``.
+            ``{"applied": bool, "version": int (the map version when answered; with
+            wait_applied it includes the scan), "dropped_points": int}``.
         """
         if self.transport == "grpc":
-            req = pb.InsertScanRequest(map=map, scan=self._scan_pb(points, pose, source, seq, frame, max_range))
+            req = pb.InsertScanRequest(
+                map=map, scan=self._scan_pb(points, pose, source, seq, frame, max_range), wait_applied=wait_applied
+            )
             r = self._call("InsertScan", req)
             return {"applied": bool(r.applied), "version": int(r.version), "dropped_points": int(r.dropped_points)}
         body, dropped = self._scan_json(points, pose, source, seq, frame, max_range)
-        r = self._http("POST", self._map_path(map, "scans"), body)
+        query = {"wait_applied": "true" if wait_applied else "false"}
+        r = self._http("POST", self._map_path(map, "scans"), body, query=query)
         return {
             "applied": bool(r["applied"]),
             "version": int(r["version"]),
             "dropped_points": int(r["dropped_points"]) + dropped,
         }
 
-    def insert_scans(self, map: str, scans: Iterable[Mapping[str, Any]]) -> Dict[str, int]:
+    def insert_scans(
+        self, map: str, scans: Iterable[Mapping[str, Any]], wait_applied: bool = True
+    ) -> Dict[str, int]:
         """Inserts many scans in order: over gRPC one ``InsertScans`` stream, over HTTP one
         request each.
 
@@ -648,8 +677,8 @@ class Client:
 
         Returns:
             ``{"scans", "applied", "duplicates", "version"}``. A refused scan raises
-            ``BgkmapError`` whose message starts with ``request i:``; the scans before it stay
-            applied.
+            ``BgkmapError`` whose message starts with ``request i:``; the scans before it are
+            durable (later ones may be too: resending is safe, duplicates are not applied twice).
         """
         if self.transport == "grpc":
 
@@ -660,6 +689,7 @@ class Client:
                         scan=self._scan_pb(
                             s["points"], s["pose"], s["source"], s["seq"], s.get("frame", "world"), s.get("max_range")
                         ),
+                        wait_applied=wait_applied,
                     )
 
             r = self._call("InsertScans", requests())
@@ -672,7 +702,7 @@ class Client:
         out = {"scans": 0, "applied": 0, "duplicates": 0, "version": 0}
         for i, s in enumerate(scans):
             try:
-                ack = self.insert_scan(map, **s)
+                ack = self.insert_scan(map, wait_applied=wait_applied, **s)
             except BgkmapError as e:
                 raise BgkmapError(
                     e.code,
@@ -694,6 +724,7 @@ class Client:
         seq: int,
         frame: Literal["world", "sensor"] = "world",
         max_range: Optional[float] = None,
+        wait_applied: bool = True,
     ) -> Dict[str, Any]:
         """Uploads a PCD file (bytes or a path) as one scan over HTTP, whatever the transport.
 
@@ -705,13 +736,92 @@ class Client:
         else:
             with open(pcd, "rb") as f:
                 data = f.read()
-        query: Dict[str, Any] = {"source": source, "seq": int(seq), "frame": frame}
+        query: Dict[str, Any] = {
+            "source": source,
+            "seq": int(seq),
+            "frame": frame,
+            "wait_applied": "true" if wait_applied else "false",
+        }
         if max_range is not None:
             query["max_range"] = repr(float(max_range))
         r = self._http(
             "POST", self._map_path(map, "scans"), raw=data, content_type="application/x-pcd", query=query
         )
         return {"applied": bool(r["applied"]), "version": int(r["version"]), "dropped_points": int(r["dropped_points"])}
+
+    # -- exact map operations -----------------------------------------------------------------
+
+    def _change(self, method: str, request: Any, path: str, body: Mapping[str, Any]) -> Dict[str, int]:
+        if self.transport == "grpc":
+            r = self._call(method, request)
+            return {
+                "scans": int(r.scans),
+                "shared_scans": int(r.shared_scans),
+                "blocks_changed": int(r.blocks_changed),
+                "version": int(r.version),
+            }
+        j = self._http("POST", path, body)
+        return {k: int(j[k]) for k in ("scans", "shared_scans", "blocks_changed", "version")}
+
+    def merge_map(self, map: str, from_map: Optional[str] = None, from_file: Optional[str] = None) -> Dict[str, int]:
+        """Adds another map's evidence (another map of the server, or a map file on the server)
+        exactly; scans both hold are counted once. Raises ``FAILED_PRECONDITION`` when that
+        cannot be done exactly (e.g. shared scans whose raw points were pruned).
+
+        Returns ``{"scans", "shared_scans", "blocks_changed", "version"}``.
+        """
+        if (from_map is None) == (from_file is None):
+            raise ValueError("give exactly one of from_map and from_file")
+        body = {"from_map": from_map} if from_map is not None else {"from_file": from_file}
+        return self._change("MergeMap", pb.MergeMapRequest(map=map, **body), self._map_path(map, "merge"), body)
+
+    def retract_scans(
+        self,
+        map: str,
+        scans: Optional[Iterable[Tuple[str, int]]] = None,
+        source: Optional[str] = None,
+        from_stamp_nanos: Optional[int] = None,
+        to_stamp_nanos: Optional[int] = None,
+    ) -> Dict[str, int]:
+        """Removes scans exactly — the listed ``(source, seq)`` ones, or every scan of ``source``
+        and/or with ``from_stamp_nanos <= stamp < to_stamp_nanos``.
+        """
+        ids = [(str(s), int(q)) for s, q in (scans or [])]
+        body: Dict[str, Any] = {}
+        if ids:
+            body["scans"] = [{"source": s, "seq": q} for s, q in ids]
+        if source is not None:
+            body["source"] = source
+        if from_stamp_nanos is not None:
+            body["from_stamp_nanos"] = int(from_stamp_nanos)
+        if to_stamp_nanos is not None:
+            body["to_stamp_nanos"] = int(to_stamp_nanos)
+        req = pb.RetractScansRequest(
+            map=map,
+            scans=[pb.ScanId(source=s, seq=q) for s, q in ids],
+            source=source or "",
+            **{k: body[k] for k in ("from_stamp_nanos", "to_stamp_nanos") if k in body},
+        )
+        return self._change("RetractScans", req, self._map_path(map, "retract"), body)
+
+    def repose_scans(self, map: str, poses: Iterable[Tuple[str, int, Pose]]) -> Dict[str, int]:
+        """Re-integrates scans under corrected poses ``(source, seq, (translation, rotation))``,
+        exactly as if they had been sent with those poses.
+        """
+        items = [(str(s), int(q), _pose(p)) for s, q, p in poses]
+        req = pb.ReposeScansRequest(
+            map=map,
+            poses=[
+                pb.ScanPose(scan=pb.ScanId(source=s, seq=q), world_from_sensor=pb.Pose(translation=t, rotation=r))
+                for s, q, (t, r) in items
+            ],
+        )
+        body = {
+            "poses": [
+                {"source": s, "seq": q, "pose": {"translation": t, "rotation": r}} for s, q, (t, r) in items
+            ]
+        }
+        return self._change("ReposeScans", req, self._map_path(map, "repose"), body)
 
     # -- queries ------------------------------------------------------------------------------
 

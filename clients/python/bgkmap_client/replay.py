@@ -16,8 +16,11 @@ bag directories. Each ``sensor_msgs/PointCloud2`` on the cloud topic becomes one
   in nanoseconds, the rule of bgkmap's ROS 2 bridge, so a bag replayed twice, or over another
   transport, is applied once.
 
-Over gRPC every scan waits for its acknowledgement (``InsertScan``). Over zenoh it goes to the
-acknowledged ``bgkmap/<map>/ingest`` query, or with ``--no-ack`` is put on
+Over gRPC every scan waits for its acknowledgement (``InsertScan``: durable in the server's
+journal). Over zenoh it goes to the acknowledged ``bgkmap/<map>/ingest`` query (the same
+acknowledgement). The last scan is sent with ``wait_applied``, so when bgkmap-replay returns
+every scan it sent is integrated and visible to queries (a map integrates in journal order), and
+the summary's ``version`` includes them. With ``--no-ack`` scans are put on
 ``bgkmap/<map>/scans/<source>`` (congestion control BLOCK; one query at the end makes sure the
 puts reached the server before the session closes). Non-finite points are sent: the
 server drops and counts them. Prints a JSON summary; ``--dry-run`` prints each scan instead of
@@ -155,6 +158,7 @@ def scan_message(scan: ReplayScan, source: str) -> Any:
         world_from_sensor=pb.Pose(translation=list(scan.pose.translation), rotation=list(scan.pose.rotation_wxyz)),
         frame=pb.FRAME_WORLD if scan.frame == "world" else pb.FRAME_SENSOR,
         xyz_f32=np.ascontiguousarray(scan.points, dtype="<f4").tobytes(),
+        stamp_nanos=scan.seq,
     )
 
 
@@ -165,8 +169,9 @@ class GrpcSink:
         self.client = Client(address)
         self.map = map_name
 
-    def send(self, scan: Any) -> Dict[str, Any]:
-        r = self.client._call("InsertScan", pb.InsertScanRequest(map=self.map, scan=scan))
+    def send(self, scan: Any, wait_applied: bool = False) -> Dict[str, Any]:
+        request = pb.InsertScanRequest(map=self.map, scan=scan, wait_applied=wait_applied)
+        r = self.client._call("InsertScan", request)
         return {"applied": bool(r.applied), "version": int(r.version)}
 
     def close(self) -> None:
@@ -197,14 +202,15 @@ class ZenohSink:
                 raise SystemExit(f"bgkmap-replay: no bgkmap server answers on zenoh {endpoint} for map {map_name!r}")
             time.sleep(0.01)
 
-    def send(self, scan: Any) -> Dict[str, Any]:
+    def send(self, scan: Any, wait_applied: bool = False) -> Dict[str, Any]:
         payload = scan.SerializeToString()
         if not self.ack:
             self.entity.put(payload)
             return {"applied": None, "version": None}
         from ._client import BgkmapError
 
-        for reply in self.entity.get(payload=payload):
+        parameters = "wait_applied" if wait_applied else None
+        for reply in self.entity.get(payload=payload, parameters=parameters):
             if reply.ok is not None:
                 r = pb.InsertScanResponse.FromString(reply.ok.payload.to_bytes())
                 return {"applied": bool(r.applied), "version": int(r.version)}
@@ -244,6 +250,23 @@ def _parse(argv: Optional[Sequence[str]]) -> argparse.Namespace:
     return a
 
 
+def _dry_row(scan: ReplayScan) -> Dict[str, Any]:
+    return {
+        "seq": scan.seq,
+        "frame": scan.frame,
+        "translation": scan.pose.translation,
+        "rotation": scan.pose.rotation_wxyz,
+        "points": len(scan.points),
+        "pose_gap_ns": scan.pose_gap_ns,
+    }
+
+
+def _count(summary: Dict[str, Any], ack: Dict[str, Any]) -> None:
+    if ack["applied"] is not None:
+        summary["applied" if ack["applied"] else "duplicates"] += 1
+        summary["version"] = ack["version"]
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     a = _parse(argv)
     source = a.source or a.cloud_topic
@@ -257,6 +280,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     summary: Dict[str, Any] = {"scans": 0, "applied": 0, "duplicates": 0, "skipped": 0, "version": None}
     skipped: List[str] = []
     try:
+        # One scan of lookahead: the last one is sent with wait_applied (see the module docs).
+        held: Optional[ReplayScan] = None
         for scan, reason in read_scans(a.bags, a.cloud_topic, a.pose_topic, a.max_pose_gap, a.frame):
             if scan is None:
                 summary["skipped"] += 1
@@ -264,20 +289,13 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
                 continue
             summary["scans"] += 1
             if a.dry_run:
-                row = {
-                    "seq": scan.seq,
-                    "frame": scan.frame,
-                    "translation": scan.pose.translation,
-                    "rotation": scan.pose.rotation_wxyz,
-                    "points": len(scan.points),
-                    "pose_gap_ns": scan.pose_gap_ns,
-                }
-                print(json.dumps(row))
+                print(json.dumps(_dry_row(scan)))
                 continue
-            ack = sink.send(scan_message(scan, source))
-            if ack["applied"] is not None:
-                summary["applied" if ack["applied"] else "duplicates"] += 1
-                summary["version"] = ack["version"]
+            if held is not None:
+                _count(summary, sink.send(scan_message(held, source)))
+            held = scan
+        if held is not None:
+            _count(summary, sink.send(scan_message(held, source), wait_applied=True))
     finally:
         if sink is not None:
             sink.close()

@@ -565,7 +565,8 @@ def test_curl_pcd_upload_and_query(server: Server, grpc_client: Client, http_cli
     created = run_curl("-X", "PUT", "-H", "Content-Type: application/json", "--data", '{"max_range": 8}',
                        f"{base}/v1/maps/pcd")
     assert created["map"] == "pcd" and created["params"]["max_range"] == 8
-    url = f"{base}/v1/maps/pcd/scans?source=c&seq=1"
+    # wait_applied=true: answered once integrated (read-your-writes), so version counts it.
+    url = f"{base}/v1/maps/pcd/scans?source=c&seq=1&wait_applied=true"
     ack = run_curl("--data-binary", f"@{pcd}", "-H", "Content-Type: application/x-pcd", url)
     assert ack == {"applied": True, "version": 1, "dropped_points": 0}
     again = run_curl("--data-binary", f"@{pcd}", "-H", "Content-Type: application/x-pcd", url)
@@ -600,6 +601,40 @@ def test_curl_pcd_upload_and_query(server: Server, grpc_client: Client, http_cli
     )
     body_text, status = out.stdout.rsplit("\n", 1)
     assert status == "400" and "seq" in json.loads(body_text)["error"]
+
+
+def test_exact_operations_over_both_transports(grpc_client: Client, http_client: Client) -> None:
+    """Re-posing the sensor-frame scan and retracting its source give the maps built without
+    them; merging a map that shares every scan changes nothing; over gRPC and HTTP alike."""
+    s = scans()
+    lidar = [x for x in s if x["source"] == "lidar"]
+    cam = next(x for x in s if x["source"] == "cam")
+    corrected = ([0.15, -0.25, 0.7], yaw(math.radians(27)))
+    q = query_grid()
+    for c, tag in ((grpc_client, "g"), (http_client, "h")):
+        full, reposed, clean = (f"ops_{tag}_{n}" for n in ("full", "reposed", "clean"))
+        for name in (full, reposed, clean):
+            c.create_map(name, max_range=MAX_RANGE)
+        for x in s:
+            assert c.insert_scan(full, wait_applied=False, **x)["applied"]
+        for x in lidar:
+            c.insert_scan(clean, **x)
+            c.insert_scan(reposed, **x)
+        c.insert_scan(reposed, **dict(cam, pose=corrected))
+        r = c.repose_scans(full, [("cam", 7, corrected)])
+        assert (r["scans"], r["version"]) == (1, 5)
+        assert_points_equal(c.query_points(full, q), c.query_points(reposed, q))
+        r = c.retract_scans(full, source="cam")
+        assert (r["scans"], r["version"]) == (1, 6)
+        assert_points_equal(c.query_points(full, q), c.query_points(clean, q))
+        info = c.get_map(full)
+        assert info["scans"] == 3 and info["sources"]["cam"]["retracted"] == 1
+        r = c.merge_map(full, from_map=clean)
+        assert (r["scans"], r["shared_scans"]) == (0, 3)
+        assert_points_equal(c.query_points(full, q), c.query_points(clean, q))
+        with pytest.raises(BgkmapError) as e:
+            c.retract_scans(full, scans=[("cam", 7)])
+        assert (e.value.code, e.value.http_status) in (("NOT_FOUND", None), ("NOT_FOUND", 404)), e.value
 
 
 def test_restart_keeps_maps(tmp_path: Path) -> None:

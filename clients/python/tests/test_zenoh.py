@@ -226,12 +226,14 @@ def map_json(server: Server, name: str) -> Dict[str, Any]:
 
 
 def wait_sources(server: Server, name: str, want: Dict[str, int], timeout: float = 120.0) -> Dict[str, Any]:
-    """Polls until every source in `want` has received that many scans (puts have no reply)."""
+    """Polls until every source in `want` has received (journaled) or rejected that many scans
+    and has none waiting for integration (puts have no reply)."""
     deadline = time.monotonic() + timeout
     while True:
         info = map_json(server, name)
-        got = {s: info["sources"].get(s, {}).get("received", 0) + info["sources"].get(s, {}).get("rejected", 0) for s in want}
-        if all(got[s] >= n for s, n in want.items()):
+        stats = {s: info["sources"].get(s, {}) for s in want}
+        got = {s: st.get("received", 0) + st.get("rejected", 0) for s, st in stats.items()}
+        if all(got[s] >= n and stats[s].get("pending", 0) == 0 for s, n in want.items()):
             return info
         assert time.monotonic() < deadline, f"timed out: {got} of {want}; {info['sources']}"
         time.sleep(0.05)

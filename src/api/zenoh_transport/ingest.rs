@@ -122,12 +122,18 @@ impl IngestContext {
         }
     }
 
-    /// The acknowledged path: decodes the query's scan, waits until it is stored (or found a
-    /// duplicate) and returns the encoded `InsertScanResponse`.
-    pub async fn ingest_query(&self, map: &str, payload: &[u8]) -> Result<Vec<u8>, Status> {
+    /// The acknowledged path: decodes the query's scan, waits until it is durable in the map's
+    /// journal (or found a duplicate; with `wait_applied`, until it is integrated) and returns
+    /// the encoded `InsertScanResponse`, as gRPC `InsertScan` does.
+    pub async fn ingest_query(
+        &self,
+        map: &str,
+        payload: &[u8],
+        wait_applied: bool,
+    ) -> Result<Vec<u8>, Status> {
         let scan = pb::Scan::decode(payload)
             .map_err(|e| Status::invalid_argument(format!("malformed protobuf bgkmap.v1.Scan: {e}")))?;
-        let ack = self.calls.insert(map, scan_input(Some(scan))?).await?;
+        let ack = self.calls.insert(map, scan_input(Some(scan))?, wait_applied).await?;
         let response = pb::InsertScanResponse {
             applied: ack.applied,
             version: ack.version,

@@ -1,7 +1,9 @@
 //! The queryables: `bgkmap/<map>/query/points`, `…/query/box`, `…/query/rays` answer the gRPC
 //! request messages (`QueryPointsRequest`, `QueryBoxRequest`, `CastRaysRequest`, in the query
 //! payload) with the gRPC response messages, through the same [`ProtoCalls`] as gRPC; and
-//! `bgkmap/<map>/ingest` takes a `Scan` and replies `InsertScanResponse` once it is stored.
+//! `bgkmap/<map>/ingest` takes a `Scan` and replies `InsertScanResponse` once it is durable in
+//! the map's journal (`bgkmap/<map>/ingest?wait_applied`: once it is integrated), like gRPC
+//! `InsertScan`.
 //!
 //! The map is the key's; a request's own `map` field may be empty or must name the same map.
 //! A failure is one `reply_err` whose payload is UTF-8 text `<GRPC_CODE>: <message>`, the code
@@ -150,8 +152,13 @@ async fn call(kind: Kind, ctx: &IngestContext, query: &Query) -> Result<Vec<u8>,
         Kind::Points => calls.query_points(request(map, &bytes)?).await?.encode_to_vec(),
         Kind::Box => calls.query_box(request(map, &bytes)?).await?.encode_to_vec(),
         Kind::Rays => calls.cast_rays(request(map, &bytes)?).await?.encode_to_vec(),
-        Kind::Ingest => ctx.ingest_query(map, &bytes).await?,
+        Kind::Ingest => ctx.ingest_query(map, &bytes, wait_applied(query)).await?,
     })
+}
+
+/// The selector parameter `wait_applied` (bare, `=true` or `=1`) of an ingest query.
+fn wait_applied(query: &Query) -> bool {
+    query.parameters().get("wait_applied").is_some_and(|v| matches!(v, "" | "true" | "1"))
 }
 
 /// `INVALID_ARGUMENT`-style name of a gRPC code.

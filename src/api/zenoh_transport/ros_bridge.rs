@@ -5,7 +5,8 @@
 //!   cloud's `header.stamp` in nanoseconds since the epoch. Stamps identify a measurement across
 //!   retries, publisher restarts and replays of the same bag, so exactly-once holds end to end
 //!   (rmw_zenoh's attachment sequence number restarts at 1 with every publisher and would not).
-//!   A cloud stamped 0 cannot be identified and is refused.
+//!   A cloud stamped 0 cannot be identified and is refused. The stamp is also the scan's
+//!   `stamp_nanos` in the journal (retraction by time range).
 //! - **Pose**: `identity`; the pose topic interpolated at the stamp; or the `/tf` chain from the
 //!   world frame to the cloud's frame. A cloud newer than every pose waits (at most
 //!   [`MAX_PENDING`] clouds, oldest refused first) until a pose at or after its stamp arrives.
@@ -194,6 +195,7 @@ impl RosBridge {
                     frame: if in_world { PointFrame::World } else { PointFrame::Sensor },
                     points: c.points,
                     max_range_m: None,
+                    stamp_nanos: Some(c.stamp_ns),
                 })),
             }
         }

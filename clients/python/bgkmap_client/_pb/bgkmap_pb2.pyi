@@ -83,13 +83,17 @@ class GetMapRequest(_message.Message):
     def __init__(self, map: _Optional[str] = ...) -> None: ...
 
 class SourceStats(_message.Message):
-    __slots__ = ("source", "received", "applied", "duplicates", "rejected", "highest_seq", "dropped_points")
+    __slots__ = ("source", "received", "applied", "duplicates", "rejected", "highest_seq", "pending", "gaps", "pruned", "retracted", "dropped_points")
     SOURCE_FIELD_NUMBER: _ClassVar[int]
     RECEIVED_FIELD_NUMBER: _ClassVar[int]
     APPLIED_FIELD_NUMBER: _ClassVar[int]
     DUPLICATES_FIELD_NUMBER: _ClassVar[int]
     REJECTED_FIELD_NUMBER: _ClassVar[int]
     HIGHEST_SEQ_FIELD_NUMBER: _ClassVar[int]
+    PENDING_FIELD_NUMBER: _ClassVar[int]
+    GAPS_FIELD_NUMBER: _ClassVar[int]
+    PRUNED_FIELD_NUMBER: _ClassVar[int]
+    RETRACTED_FIELD_NUMBER: _ClassVar[int]
     DROPPED_POINTS_FIELD_NUMBER: _ClassVar[int]
     source: str
     received: int
@@ -97,11 +101,15 @@ class SourceStats(_message.Message):
     duplicates: int
     rejected: int
     highest_seq: int
+    pending: int
+    gaps: int
+    pruned: int
+    retracted: int
     dropped_points: int
-    def __init__(self, source: _Optional[str] = ..., received: _Optional[int] = ..., applied: _Optional[int] = ..., duplicates: _Optional[int] = ..., rejected: _Optional[int] = ..., highest_seq: _Optional[int] = ..., dropped_points: _Optional[int] = ...) -> None: ...
+    def __init__(self, source: _Optional[str] = ..., received: _Optional[int] = ..., applied: _Optional[int] = ..., duplicates: _Optional[int] = ..., rejected: _Optional[int] = ..., highest_seq: _Optional[int] = ..., pending: _Optional[int] = ..., gaps: _Optional[int] = ..., pruned: _Optional[int] = ..., retracted: _Optional[int] = ..., dropped_points: _Optional[int] = ...) -> None: ...
 
 class MapInfo(_message.Message):
-    __slots__ = ("map", "params", "version", "blocks", "cells_with_evidence", "queued", "sources")
+    __slots__ = ("map", "params", "version", "blocks", "cells_with_evidence", "queued", "sources", "scans", "journal_bytes", "corrupt_blocks", "read_only")
     MAP_FIELD_NUMBER: _ClassVar[int]
     PARAMS_FIELD_NUMBER: _ClassVar[int]
     VERSION_FIELD_NUMBER: _ClassVar[int]
@@ -109,6 +117,10 @@ class MapInfo(_message.Message):
     CELLS_WITH_EVIDENCE_FIELD_NUMBER: _ClassVar[int]
     QUEUED_FIELD_NUMBER: _ClassVar[int]
     SOURCES_FIELD_NUMBER: _ClassVar[int]
+    SCANS_FIELD_NUMBER: _ClassVar[int]
+    JOURNAL_BYTES_FIELD_NUMBER: _ClassVar[int]
+    CORRUPT_BLOCKS_FIELD_NUMBER: _ClassVar[int]
+    READ_ONLY_FIELD_NUMBER: _ClassVar[int]
     map: str
     params: MapParams
     version: int
@@ -116,7 +128,11 @@ class MapInfo(_message.Message):
     cells_with_evidence: int
     queued: int
     sources: _containers.RepeatedCompositeFieldContainer[SourceStats]
-    def __init__(self, map: _Optional[str] = ..., params: _Optional[_Union[MapParams, _Mapping]] = ..., version: _Optional[int] = ..., blocks: _Optional[int] = ..., cells_with_evidence: _Optional[int] = ..., queued: _Optional[int] = ..., sources: _Optional[_Iterable[_Union[SourceStats, _Mapping]]] = ...) -> None: ...
+    scans: int
+    journal_bytes: int
+    corrupt_blocks: int
+    read_only: str
+    def __init__(self, map: _Optional[str] = ..., params: _Optional[_Union[MapParams, _Mapping]] = ..., version: _Optional[int] = ..., blocks: _Optional[int] = ..., cells_with_evidence: _Optional[int] = ..., queued: _Optional[int] = ..., sources: _Optional[_Iterable[_Union[SourceStats, _Mapping]]] = ..., scans: _Optional[int] = ..., journal_bytes: _Optional[int] = ..., corrupt_blocks: _Optional[int] = ..., read_only: _Optional[str] = ...) -> None: ...
 
 class Pose(_message.Message):
     __slots__ = ("translation", "rotation")
@@ -127,28 +143,32 @@ class Pose(_message.Message):
     def __init__(self, translation: _Optional[_Iterable[float]] = ..., rotation: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class Scan(_message.Message):
-    __slots__ = ("source", "seq", "world_from_sensor", "frame", "xyz_f32", "max_range")
+    __slots__ = ("source", "seq", "world_from_sensor", "frame", "xyz_f32", "max_range", "stamp_nanos")
     SOURCE_FIELD_NUMBER: _ClassVar[int]
     SEQ_FIELD_NUMBER: _ClassVar[int]
     WORLD_FROM_SENSOR_FIELD_NUMBER: _ClassVar[int]
     FRAME_FIELD_NUMBER: _ClassVar[int]
     XYZ_F32_FIELD_NUMBER: _ClassVar[int]
     MAX_RANGE_FIELD_NUMBER: _ClassVar[int]
+    STAMP_NANOS_FIELD_NUMBER: _ClassVar[int]
     source: str
     seq: int
     world_from_sensor: Pose
     frame: Frame
     xyz_f32: bytes
     max_range: float
-    def __init__(self, source: _Optional[str] = ..., seq: _Optional[int] = ..., world_from_sensor: _Optional[_Union[Pose, _Mapping]] = ..., frame: _Optional[_Union[Frame, str]] = ..., xyz_f32: _Optional[bytes] = ..., max_range: _Optional[float] = ...) -> None: ...
+    stamp_nanos: int
+    def __init__(self, source: _Optional[str] = ..., seq: _Optional[int] = ..., world_from_sensor: _Optional[_Union[Pose, _Mapping]] = ..., frame: _Optional[_Union[Frame, str]] = ..., xyz_f32: _Optional[bytes] = ..., max_range: _Optional[float] = ..., stamp_nanos: _Optional[int] = ...) -> None: ...
 
 class InsertScanRequest(_message.Message):
-    __slots__ = ("map", "scan")
+    __slots__ = ("map", "scan", "wait_applied")
     MAP_FIELD_NUMBER: _ClassVar[int]
     SCAN_FIELD_NUMBER: _ClassVar[int]
+    WAIT_APPLIED_FIELD_NUMBER: _ClassVar[int]
     map: str
     scan: Scan
-    def __init__(self, map: _Optional[str] = ..., scan: _Optional[_Union[Scan, _Mapping]] = ...) -> None: ...
+    wait_applied: bool
+    def __init__(self, map: _Optional[str] = ..., scan: _Optional[_Union[Scan, _Mapping]] = ..., wait_applied: bool = ...) -> None: ...
 
 class InsertScanResponse(_message.Message):
     __slots__ = ("applied", "version", "dropped_points")
@@ -313,3 +333,63 @@ class ExportChunk(_message.Message):
     variance: _containers.RepeatedScalarFieldContainer[float]
     resolution: float
     def __init__(self, cell: _Optional[_Iterable[int]] = ..., probability: _Optional[_Iterable[float]] = ..., variance: _Optional[_Iterable[float]] = ..., resolution: _Optional[float] = ...) -> None: ...
+
+class ScanId(_message.Message):
+    __slots__ = ("source", "seq")
+    SOURCE_FIELD_NUMBER: _ClassVar[int]
+    SEQ_FIELD_NUMBER: _ClassVar[int]
+    source: str
+    seq: int
+    def __init__(self, source: _Optional[str] = ..., seq: _Optional[int] = ...) -> None: ...
+
+class MergeMapRequest(_message.Message):
+    __slots__ = ("map", "from_map", "from_file")
+    MAP_FIELD_NUMBER: _ClassVar[int]
+    FROM_MAP_FIELD_NUMBER: _ClassVar[int]
+    FROM_FILE_FIELD_NUMBER: _ClassVar[int]
+    map: str
+    from_map: str
+    from_file: str
+    def __init__(self, map: _Optional[str] = ..., from_map: _Optional[str] = ..., from_file: _Optional[str] = ...) -> None: ...
+
+class RetractScansRequest(_message.Message):
+    __slots__ = ("map", "scans", "source", "from_stamp_nanos", "to_stamp_nanos")
+    MAP_FIELD_NUMBER: _ClassVar[int]
+    SCANS_FIELD_NUMBER: _ClassVar[int]
+    SOURCE_FIELD_NUMBER: _ClassVar[int]
+    FROM_STAMP_NANOS_FIELD_NUMBER: _ClassVar[int]
+    TO_STAMP_NANOS_FIELD_NUMBER: _ClassVar[int]
+    map: str
+    scans: _containers.RepeatedCompositeFieldContainer[ScanId]
+    source: str
+    from_stamp_nanos: int
+    to_stamp_nanos: int
+    def __init__(self, map: _Optional[str] = ..., scans: _Optional[_Iterable[_Union[ScanId, _Mapping]]] = ..., source: _Optional[str] = ..., from_stamp_nanos: _Optional[int] = ..., to_stamp_nanos: _Optional[int] = ...) -> None: ...
+
+class ScanPose(_message.Message):
+    __slots__ = ("scan", "world_from_sensor")
+    SCAN_FIELD_NUMBER: _ClassVar[int]
+    WORLD_FROM_SENSOR_FIELD_NUMBER: _ClassVar[int]
+    scan: ScanId
+    world_from_sensor: Pose
+    def __init__(self, scan: _Optional[_Union[ScanId, _Mapping]] = ..., world_from_sensor: _Optional[_Union[Pose, _Mapping]] = ...) -> None: ...
+
+class ReposeScansRequest(_message.Message):
+    __slots__ = ("map", "poses")
+    MAP_FIELD_NUMBER: _ClassVar[int]
+    POSES_FIELD_NUMBER: _ClassVar[int]
+    map: str
+    poses: _containers.RepeatedCompositeFieldContainer[ScanPose]
+    def __init__(self, map: _Optional[str] = ..., poses: _Optional[_Iterable[_Union[ScanPose, _Mapping]]] = ...) -> None: ...
+
+class MapChange(_message.Message):
+    __slots__ = ("scans", "shared_scans", "blocks_changed", "version")
+    SCANS_FIELD_NUMBER: _ClassVar[int]
+    SHARED_SCANS_FIELD_NUMBER: _ClassVar[int]
+    BLOCKS_CHANGED_FIELD_NUMBER: _ClassVar[int]
+    VERSION_FIELD_NUMBER: _ClassVar[int]
+    scans: int
+    shared_scans: int
+    blocks_changed: int
+    version: int
+    def __init__(self, scans: _Optional[int] = ..., shared_scans: _Optional[int] = ..., blocks_changed: _Optional[int] = ..., version: _Optional[int] = ...) -> None: ...

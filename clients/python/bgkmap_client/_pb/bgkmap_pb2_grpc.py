@@ -79,6 +79,21 @@ class MapServiceStub(object):
                 request_serializer=bgkmap_dot_v1_dot_bgkmap__pb2.ExportRequest.SerializeToString,
                 response_deserializer=bgkmap_dot_v1_dot_bgkmap__pb2.ExportChunk.FromString,
                 _registered_method=True)
+        self.MergeMap = channel.unary_unary(
+                '/bgkmap.v1.MapService/MergeMap',
+                request_serializer=bgkmap_dot_v1_dot_bgkmap__pb2.MergeMapRequest.SerializeToString,
+                response_deserializer=bgkmap_dot_v1_dot_bgkmap__pb2.MapChange.FromString,
+                _registered_method=True)
+        self.RetractScans = channel.unary_unary(
+                '/bgkmap.v1.MapService/RetractScans',
+                request_serializer=bgkmap_dot_v1_dot_bgkmap__pb2.RetractScansRequest.SerializeToString,
+                response_deserializer=bgkmap_dot_v1_dot_bgkmap__pb2.MapChange.FromString,
+                _registered_method=True)
+        self.ReposeScans = channel.unary_unary(
+                '/bgkmap.v1.MapService/ReposeScans',
+                request_serializer=bgkmap_dot_v1_dot_bgkmap__pb2.ReposeScansRequest.SerializeToString,
+                response_deserializer=bgkmap_dot_v1_dot_bgkmap__pb2.MapChange.FromString,
+                _registered_method=True)
 
 
 class MapServiceServicer(object):
@@ -105,14 +120,16 @@ class MapServiceServicer(object):
         raise NotImplementedError('Method not implemented!')
 
     def InsertScan(self, request, context):
-        """One scan; answered once it is applied and stored (or found to be a duplicate).
+        """One scan; answered once it is durable in the map's journal (or found to be a duplicate),
+        or, with `wait_applied`, once it is integrated and visible to queries.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
     def InsertScans(self, request_iterator, context):
-        """Many scans of one map over one stream; answered with a summary at the end.
+        """Many scans of one map over one stream (several in flight, each journaled in order);
+        answered with a summary at the end.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -138,6 +155,31 @@ class MapServiceServicer(object):
 
     def Export(self, request, context):
         """Cells with evidence (optionally inside a box), in chunks.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def MergeMap(self, request, context):
+        """Adds another map's evidence (another map of this server, or a map file on the server):
+        exact, and scans both maps hold are counted once. FAILED_PRECONDITION when that cannot be
+        done exactly (e.g. a shared scan whose raw points were pruned in both maps).
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def RetractScans(self, request, context):
+        """Removes scans — listed ones, or all of a source and/or a stamp range — exactly: the map
+        becomes bit-identical to one built without them.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def ReposeScans(self, request, context):
+        """Re-integrates scans under corrected poses (loop closure): bit-identical to having built
+        them with those poses.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -190,6 +232,21 @@ def add_MapServiceServicer_to_server(servicer, server):
                     servicer.Export,
                     request_deserializer=bgkmap_dot_v1_dot_bgkmap__pb2.ExportRequest.FromString,
                     response_serializer=bgkmap_dot_v1_dot_bgkmap__pb2.ExportChunk.SerializeToString,
+            ),
+            'MergeMap': grpc.unary_unary_rpc_method_handler(
+                    servicer.MergeMap,
+                    request_deserializer=bgkmap_dot_v1_dot_bgkmap__pb2.MergeMapRequest.FromString,
+                    response_serializer=bgkmap_dot_v1_dot_bgkmap__pb2.MapChange.SerializeToString,
+            ),
+            'RetractScans': grpc.unary_unary_rpc_method_handler(
+                    servicer.RetractScans,
+                    request_deserializer=bgkmap_dot_v1_dot_bgkmap__pb2.RetractScansRequest.FromString,
+                    response_serializer=bgkmap_dot_v1_dot_bgkmap__pb2.MapChange.SerializeToString,
+            ),
+            'ReposeScans': grpc.unary_unary_rpc_method_handler(
+                    servicer.ReposeScans,
+                    request_deserializer=bgkmap_dot_v1_dot_bgkmap__pb2.ReposeScansRequest.FromString,
+                    response_serializer=bgkmap_dot_v1_dot_bgkmap__pb2.MapChange.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -435,6 +492,87 @@ class MapService(object):
             '/bgkmap.v1.MapService/Export',
             bgkmap_dot_v1_dot_bgkmap__pb2.ExportRequest.SerializeToString,
             bgkmap_dot_v1_dot_bgkmap__pb2.ExportChunk.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def MergeMap(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/bgkmap.v1.MapService/MergeMap',
+            bgkmap_dot_v1_dot_bgkmap__pb2.MergeMapRequest.SerializeToString,
+            bgkmap_dot_v1_dot_bgkmap__pb2.MapChange.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def RetractScans(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/bgkmap.v1.MapService/RetractScans',
+            bgkmap_dot_v1_dot_bgkmap__pb2.RetractScansRequest.SerializeToString,
+            bgkmap_dot_v1_dot_bgkmap__pb2.MapChange.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def ReposeScans(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/bgkmap.v1.MapService/ReposeScans',
+            bgkmap_dot_v1_dot_bgkmap__pb2.ReposeScansRequest.SerializeToString,
+            bgkmap_dot_v1_dot_bgkmap__pb2.MapChange.FromString,
             options,
             channel_credentials,
             insecure,

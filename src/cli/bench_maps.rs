@@ -1,0 +1,162 @@
+//! `bgkmap bench restart` and the map-size half of `bgkmap bench durable`: large map files
+//! (tiled from the blocks of real simulated scans, with a journal of raw scans), the time and
+//! memory to open them as the server does on restart, and the time of an exact offline merge.
+
+use crate::core::evidence::BlockEvidence;
+use crate::core::{BlockKey, EvidenceMap, Integrator, MapParams, PointFrame, Pose, RawScan};
+use crate::service::{MapService, ServiceConfig};
+use crate::sim::{Lidar, simulate};
+use crate::store::{DurableMap, MapReader, NewScan, save_map_with_scans};
+use anyhow::{Context, Result, ensure};
+use clap::Args;
+use serde_json::{Value, json};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+#[derive(Debug, Args)]
+pub struct RestartArgs {
+    /// Data directory to open as `bgkmap serve` does (every map file, journals replayed).
+    #[arg(long)]
+    pub data_dir: PathBuf,
+    /// Print one JSON object.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Resident and peak memory of this process (kB), from `/proc/self/status`.
+pub(super) fn memory_kb() -> (u64, u64) {
+    let text = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+    let field = |name: &str| {
+        text.lines()
+            .find_map(|l| l.strip_prefix(name))
+            .and_then(|v| v.split_whitespace().next()?.parse().ok())
+            .unwrap_or(0)
+    };
+    (field("VmRSS:"), field("VmHWM:"))
+}
+
+/// Opens a data directory like a restarting server and reports time and memory.
+pub fn run_restart(a: RestartArgs) -> Result<()> {
+    let (rss0, _) = memory_kb();
+    let t0 = Instant::now();
+    let service = MapService::open(&a.data_dir, ServiceConfig::default())?;
+    let open_s = t0.elapsed().as_secs_f64();
+    let (rss1, hwm) = memory_kb();
+    let maps = service.list_maps();
+    let blocks: usize = maps.iter().map(|m| m.blocks).sum();
+    let scans: u64 = maps.iter().map(|m| m.scans).sum();
+    service.shutdown();
+    let v = json!({"bench": "restart", "maps": maps.len(), "blocks": blocks, "scans": scans, "open_s": open_s,
+                   "rss_before_mb": rss0 as f64 / 1024.0, "rss_after_mb": rss1 as f64 / 1024.0,
+                   "peak_rss_mb": hwm as f64 / 1024.0});
+    if a.json {
+        println!("{v}");
+    } else {
+        println!(
+            "restart {}: {} maps, {blocks} blocks, {scans} journaled scans: open {open_s:.2} s, resident memory +{:.0} MB ({:.0} MB, peak {:.0} MB)",
+            a.data_dir.display(),
+            maps.len(),
+            (rss1.saturating_sub(rss0)) as f64 / 1024.0,
+            rss1 as f64 / 1024.0,
+            hwm as f64 / 1024.0
+        );
+    }
+    Ok(())
+}
+
+/// Simulated scans of the built-in room thinned to exactly `points` points each (world frame).
+pub(super) fn scans_of(points: usize, n: usize) -> Vec<RawScan> {
+    let (_, sim) = simulate(0, n.clamp(1, 48), &Lidar::default());
+    (0..n)
+        .map(|i| {
+            let s = &sim[i % sim.len()];
+            let step = (s.points_world.len() / points.max(1)).max(1);
+            let pts: Vec<[f32; 3]> = s.points_world.iter().step_by(step).take(points).copied().collect();
+            RawScan {
+                frame: PointFrame::World,
+                world_from_sensor: Pose::at(s.origin),
+                points: pts,
+                max_range_m: None,
+            }
+        })
+        .collect()
+}
+
+/// A map of about `blocks` blocks: the blocks of 24 real scans, tiled over a grid of copies;
+/// tiles start at `first_tile` (two maps overlap where their tile ranges do).
+fn tiled(base: &EvidenceMap, blocks: usize, first_tile: usize) -> EvidenceMap {
+    let keys = base.block_keys_sorted();
+    let span = |f: fn(&BlockKey) -> i32| {
+        keys.iter().map(f).max().unwrap_or(0) - keys.iter().map(f).min().unwrap_or(0) + 1
+    };
+    let (sx, sy) = (span(|k| k.x), span(|k| k.y));
+    let mut map = EvidenceMap::new(*base.params());
+    let mut tile = first_tile;
+    while map.block_count() < blocks {
+        let (tx, ty) = ((tile % 16) as i32 * sx, (tile / 16) as i32 * sy);
+        for k in &keys {
+            if map.block_count() >= blocks {
+                break;
+            }
+            let block: &BlockEvidence = base.block(*k).expect("key of the map");
+            map.insert_block(BlockKey::new(k.x + tx, k.y + ty, k.z), Box::new(block.clone()));
+        }
+        tile += 1;
+    }
+    map
+}
+
+/// Writes the two bench maps `a` and `b` (half of b's tiles overlap a's; each journals
+/// `journal` raw scans under its own source). Returns seconds spent.
+pub(super) fn write_maps(a: &Path, b: &Path, blocks: usize, journal: usize, points: usize) -> Result<f64> {
+    let t0 = Instant::now();
+    let params = MapParams::default();
+    let mut base = EvidenceMap::new(params);
+    let mut integ = Integrator::new(params);
+    let raws = scans_of(5760, 24);
+    for r in &raws {
+        base.apply(&r.delta(&mut integ, 1)?, 1);
+    }
+    let per_tile = base.block_count().max(1);
+    let tiles = blocks.div_ceil(per_tile);
+    let journal_scans = scans_of(points, journal);
+    for (path, first_tile, source) in [(a, 0, "robot-a"), (b, tiles / 2, "robot-b")] {
+        let map = tiled(&base, blocks, first_tile);
+        let rows: Vec<NewScan> = journal_scans
+            .iter()
+            .enumerate()
+            .map(|(i, s)| NewScan {
+                source: source.into(),
+                seq: i as u64 + 1,
+                stamp_nanos: 1,
+                received_nanos: 1,
+                scan: s.clone(),
+            })
+            .collect();
+        save_map_with_scans(path, &map, &rows, rows.len() as u64)?;
+    }
+    Ok(t0.elapsed().as_secs_f64())
+}
+
+/// Restart of `dir` in a fresh process (`bgkmap bench restart`), for clean memory figures.
+pub(super) fn restart_in_child(dir: &Path) -> Result<Value> {
+    let exe = std::env::current_exe().context("locating the bgkmap executable")?;
+    let out = std::process::Command::new(exe)
+        .args(["bench", "restart", "--json", "--data-dir"])
+        .arg(dir)
+        .output()
+        .context("running bgkmap bench restart")?;
+    ensure!(out.status.success(), "bench restart failed: {}", String::from_utf8_lossy(&out.stderr));
+    Ok(serde_json::from_slice(&out.stdout)?)
+}
+
+/// The offline exact merge of `a` and `b` into `out`, as `bgkmap merge` does it.
+pub(super) fn merge(a: &Path, b: &Path, out: &Path) -> Result<(f64, u64)> {
+    let t0 = Instant::now();
+    MapReader::open(a)?.copy_to(out)?;
+    let mut merged = DurableMap::open_recovered(out)?;
+    merged.merge_from(b)?;
+    let blocks = merged.map().block_count() as u64;
+    merged.close()?;
+    Ok((t0.elapsed().as_secs_f64(), blocks))
+}

@@ -1,0 +1,114 @@
+//! A batch of changes to an [`EvidenceMap`] computed aside from it: scans added or removed,
+//! whole blocks of another map added. The map itself is untouched until the edit is committed
+//! with [`EvidenceMap::commit_edit`], so a caller can first make the change durable and only then
+//! publish it (and drop the edit if storing fails).
+
+use super::evidence::{BlockEvidence, ScanDelta};
+use super::key::BlockKey;
+use super::map::EvidenceMap;
+use rustc_hash::FxHashMap;
+use std::sync::Arc;
+
+/// Changed blocks of a map: each starts as a copy of the map's block (or zero) on first touch.
+#[derive(Debug)]
+pub struct MapEdit<'a> {
+    base: &'a EvidenceMap,
+    blocks: FxHashMap<BlockKey, Box<BlockEvidence>>,
+}
+
+/// The outcome of an edit: every touched block with its new content (`None`: no evidence left,
+/// the block goes), sorted by key.
+pub type EditedBlocks = Vec<(BlockKey, Option<Arc<BlockEvidence>>)>;
+
+impl<'a> MapEdit<'a> {
+    pub fn new(base: &'a EvidenceMap) -> Self {
+        Self { base, blocks: FxHashMap::default() }
+    }
+
+    fn block_mut(&mut self, key: BlockKey) -> &mut BlockEvidence {
+        let base = self.base;
+        self.blocks.entry(key).or_insert_with(|| match base.block(key) {
+            Some(b) => Box::new(b.clone()),
+            None => BlockEvidence::zeroed(),
+        })
+    }
+
+    /// Adds (`sign` ≥ 0) or subtracts (`sign` < 0) a scan's evidence.
+    pub fn add_delta(&mut self, delta: &ScanDelta, sign: i64) {
+        for (key, d) in &delta.blocks {
+            self.block_mut(*key).add_scaled(d, sign);
+        }
+    }
+
+    /// Adds (`sign` ≥ 0) or subtracts (`sign` < 0) one block of evidence.
+    pub fn add_block(&mut self, key: BlockKey, block: &BlockEvidence, sign: i64) {
+        self.block_mut(key).add_scaled(block, sign);
+    }
+
+    /// Blocks touched so far.
+    pub fn len(&self) -> usize {
+        self.blocks.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.blocks.is_empty()
+    }
+
+    /// The touched blocks and their new content, sorted by key; blocks whose content did not
+    /// change are left out.
+    pub fn finish(self) -> EditedBlocks {
+        let base = self.base;
+        let mut out: EditedBlocks = self
+            .blocks
+            .into_iter()
+            .filter(|(k, b)| match base.block(*k) {
+                Some(old) => *old != **b,
+                None => !b.is_empty(),
+            })
+            .map(|(k, b)| (k, (!b.is_empty()).then(|| Arc::from(b))))
+            .collect();
+        out.sort_unstable_by_key(|(k, _)| *k);
+        out
+    }
+}
+
+impl EvidenceMap {
+    /// Starts an edit of this map (see [`MapEdit`]).
+    pub fn edit(&self) -> MapEdit<'_> {
+        MapEdit::new(self)
+    }
+
+    /// Installs the blocks of a finished edit.
+    pub fn commit_edit(&mut self, blocks: EditedBlocks) {
+        self.set_blocks(blocks);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::core::{Integrator, MapParams};
+
+    #[test]
+    fn edit_leaves_the_map_alone_until_committed_and_drops_emptied_blocks() {
+        let params = MapParams::default();
+        let mut integ = Integrator::new(params);
+        let pts: Vec<[f32; 3]> = (0..100).map(|i| [2.0, -0.5 + i as f32 * 0.01, 0.5]).collect();
+        let delta = integ.scan_delta(&pts, [0.0, 0.0, 0.5], 1);
+        let mut map = EvidenceMap::new(params);
+        map.apply(&delta, 1);
+        let before = map.clone();
+        let mut edit = map.edit();
+        edit.add_delta(&delta, -1);
+        let blocks = edit.finish();
+        assert_eq!(map.block_keys_sorted(), before.block_keys_sorted(), "the map is untouched");
+        assert!(blocks.iter().all(|(_, b)| b.is_none()), "removing the only scan empties every block");
+        map.commit_edit(blocks);
+        assert_eq!(map.block_count(), 0);
+        // A change that cancels out touches nothing.
+        let mut edit = before.edit();
+        edit.add_delta(&delta, 1);
+        edit.add_delta(&delta, -1);
+        assert!(edit.finish().is_empty());
+    }
+}

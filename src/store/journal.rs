@@ -1,0 +1,180 @@
+//! The journal's rows (`scans` table) in memory: which scans a map holds, in which state.
+
+use super::{StoreError, sql};
+use rusqlite::Connection;
+use std::collections::BTreeMap;
+use std::path::Path;
+
+/// The identity of a scan in a map: `(source, seq)`.
+pub type ScanId = (String, u64);
+
+/// The state of a journaled scan (`scans.status`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum ScanStatus {
+    /// Durable; evidence not yet in the blocks.
+    Journaled = 0,
+    /// Evidence in the blocks; raw scan kept.
+    Applied = 1,
+    /// Evidence in the blocks; raw scan pruned by retention.
+    Pruned = 2,
+    /// Evidence removed; the identity stays (never accepted again).
+    Retracted = 3,
+}
+
+impl ScanStatus {
+    pub fn from_code(code: i64) -> Option<Self> {
+        Some(match code {
+            0 => Self::Journaled,
+            1 => Self::Applied,
+            2 => Self::Pruned,
+            3 => Self::Retracted,
+            _ => return None,
+        })
+    }
+
+    /// True when the scan's evidence is (or, once replayed, will be) part of the map.
+    pub fn in_map(self) -> bool {
+        !matches!(self, Self::Retracted)
+    }
+
+    /// True when the raw scan is stored.
+    pub fn has_record(self) -> bool {
+        matches!(self, Self::Journaled | Self::Applied)
+    }
+}
+
+/// One journal row without its record.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct JournalEntry {
+    pub id: i64,
+    pub stamp_nanos: i64,
+    pub received_nanos: i64,
+    pub status: ScanStatus,
+    pub record_bytes: u64,
+    pub crc32: u32,
+}
+
+/// Per-source counts of a journal.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct SourceContent {
+    /// Scans whose evidence is in the blocks (applied, with or without raw scan).
+    pub applied: u64,
+    /// Scans journaled, not yet integrated.
+    pub pending: u64,
+    /// Applied scans whose raw scan was pruned.
+    pub pruned: u64,
+    pub retracted: u64,
+    pub highest_seq: Option<u64>,
+    /// Sequence numbers missing between the lowest and the highest ever accepted.
+    pub gaps: u64,
+}
+
+/// Every journal row of a map, by source and seq.
+#[derive(Debug, Clone, Default)]
+pub struct JournalIndex {
+    sources: BTreeMap<String, BTreeMap<u64, JournalEntry>>,
+}
+
+impl JournalIndex {
+    /// Reads every row of the `scans` table.
+    pub(super) fn read(conn: &Connection, path: &Path) -> Result<Self, StoreError> {
+        let e = sql(path);
+        let mut stmt = conn
+            .prepare(
+                "SELECT id, source, seq, stamp_nanos, received_nanos, status, record_bytes, crc32 FROM scans",
+            )
+            .map_err(&e)?;
+        let mut rows = stmt.query([]).map_err(&e)?;
+        let mut index = Self::default();
+        while let Some(r) = rows.next().map_err(&e)? {
+            let source: String = r.get(1).map_err(&e)?;
+            let seq: i64 = r.get(2).map_err(&e)?;
+            let code: i64 = r.get(5).map_err(&e)?;
+            let bad = |reason: String| StoreError::CorruptRecord {
+                path: path.to_path_buf(),
+                source_name: source.clone(),
+                seq: seq as u64,
+                reason,
+            };
+            let status = ScanStatus::from_code(code).ok_or_else(|| bad(format!("unknown status {code}")))?;
+            if seq < 0 {
+                return Err(bad("negative seq".into()));
+            }
+            let entry = JournalEntry {
+                id: r.get(0).map_err(&e)?,
+                stamp_nanos: r.get(3).map_err(&e)?,
+                received_nanos: r.get(4).map_err(&e)?,
+                status,
+                record_bytes: r.get::<_, i64>(6).map_err(&e)?.max(0) as u64,
+                crc32: r.get::<_, i64>(7).map_err(&e)? as u32,
+            };
+            index.insert(source, seq as u64, entry);
+        }
+        Ok(index)
+    }
+
+    pub fn insert(&mut self, source: String, seq: u64, entry: JournalEntry) {
+        self.sources.entry(source).or_default().insert(seq, entry);
+    }
+
+    pub fn get(&self, source: &str, seq: u64) -> Option<&JournalEntry> {
+        self.sources.get(source)?.get(&seq)
+    }
+
+    pub fn get_mut(&mut self, source: &str, seq: u64) -> Option<&mut JournalEntry> {
+        self.sources.get_mut(source)?.get_mut(&seq)
+    }
+
+    pub fn contains(&self, source: &str, seq: u64) -> bool {
+        self.get(source, seq).is_some()
+    }
+
+    /// Every row, by source then seq.
+    pub fn iter(&self) -> impl Iterator<Item = (&str, u64, &JournalEntry)> {
+        self.sources.iter().flat_map(|(s, m)| m.iter().map(move |(q, e)| (s.as_str(), *q, e)))
+    }
+
+    /// The rows of one source.
+    pub fn of_source(&self, source: &str) -> impl Iterator<Item = (u64, &JournalEntry)> {
+        self.sources.get(source).into_iter().flat_map(|m| m.iter().map(|(q, e)| (*q, e)))
+    }
+
+    pub fn len(&self) -> usize {
+        self.sources.values().map(BTreeMap::len).sum()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.sources.is_empty()
+    }
+
+    /// Bytes of raw scans stored (journaled and applied scans).
+    pub fn record_bytes(&self) -> u64 {
+        self.iter().filter(|(_, _, e)| e.status.has_record()).map(|(_, _, e)| e.record_bytes).sum()
+    }
+
+    /// Counts per source.
+    pub fn content(&self) -> BTreeMap<String, SourceContent> {
+        self.sources
+            .iter()
+            .map(|(source, seqs)| {
+                let mut c = SourceContent::default();
+                for e in seqs.values() {
+                    match e.status {
+                        ScanStatus::Journaled => c.pending += 1,
+                        ScanStatus::Applied => c.applied += 1,
+                        ScanStatus::Pruned => {
+                            c.applied += 1;
+                            c.pruned += 1;
+                        }
+                        ScanStatus::Retracted => c.retracted += 1,
+                    }
+                }
+                if let (Some((lo, _)), Some((hi, _))) = (seqs.first_key_value(), seqs.last_key_value()) {
+                    c.highest_seq = Some(*hi);
+                    c.gaps = (hi - lo + 1).saturating_sub(seqs.len() as u64);
+                }
+                (source.clone(), c)
+            })
+            .collect()
+    }
+}
