@@ -47,11 +47,13 @@ pub fn run(a: ZenohBenchArgs) -> Result<()> {
         let f = |k: &str| v[k].as_f64().unwrap_or(f64::NAN);
         println!(
             "zenoh bench (in-process server, zenoh peers on loopback, {} simulated scans):\n  \
-             ingest, {} publishers putting at once: {:.1} scans/s, {:.3} M raw points/s\n  \
+             ingest, {} publishers putting at once: {:.1} scans/s journaled (durable), \
+             {:.1} scans/s integrated, {:.3} M raw points/s integrated\n  \
              query/points over zenoh, {} points per query: {:.2} M points/s\n  \
              QueryPoints over gRPC, same server and payloads: {:.2} M points/s",
             v["scans"],
             v["publishers"],
+            f("journaled_scans_per_s"),
             f("ingest_scans_per_s"),
             f("ingest_points_per_s") / 1e6,
             v["batch"],
@@ -104,7 +106,8 @@ async fn measure(running: &Running, a: &ZenohBenchArgs, sim: &[SimScan]) -> Resu
     let create = pb::CreateMapRequest { map: MAP.into(), params: Some(pb::MapParams::default()) };
     client.create_map(create).await.context("creating map bench")?;
     // Publishers are threads of their own; the server's scan worker needs no async worker.
-    let ingest_s = tokio::task::block_in_place(|| ingest(running, &locator, a.publishers, sim))?;
+    let (journaled_s, ingest_s) =
+        tokio::task::block_in_place(|| ingest(running, &locator, a.publishers, sim))?;
     let raw_points: usize = sim.iter().map(|s| s.points_world.len()).sum();
     let session = peer(&locator)?;
     let mut rng = ChaCha8Rng::seed_from_u64(0x6267_6b6d);
@@ -114,6 +117,7 @@ async fn measure(running: &Running, a: &ZenohBenchArgs, sim: &[SimScan]) -> Resu
     Ok(json!({
         "bench": "zenoh",
         "scans": sim.len(), "publishers": a.publishers, "batch": a.batch, "raw_points": raw_points,
+        "journaled_scans_per_s": sim.len() as f64 / journaled_s,
         "ingest_scans_per_s": sim.len() as f64 / ingest_s,
         "ingest_points_per_s": raw_points as f64 / ingest_s,
         "zenoh_points_per_s": zenoh_points_per_s,
@@ -121,10 +125,10 @@ async fn measure(running: &Running, a: &ZenohBenchArgs, sim: &[SimScan]) -> Resu
     }))
 }
 
-/// Seconds from the first put until the map holds every scan, `publishers` peers putting their
-/// share at once (each waits until the server's subscriber matches before the clock starts).
-/// Blocks the calling thread.
-fn ingest(running: &Running, locator: &str, publishers: usize, sim: &[SimScan]) -> Result<f64> {
+/// Seconds from the first put until every scan is journaled, and until every scan is
+/// integrated, `publishers` peers putting their share at once (each waits until the server's
+/// subscriber matches before the clock starts). Blocks the calling thread.
+fn ingest(running: &Running, locator: &str, publishers: usize, sim: &[SimScan]) -> Result<(f64, f64)> {
     let shares: Vec<Vec<Vec<u8>>> = (0..publishers)
         .map(|p| {
             let source = format!("robot{}", p + 1);
@@ -139,7 +143,7 @@ fn ingest(running: &Running, locator: &str, publishers: usize, sim: &[SimScan]) 
     // after the puts may drop some still queued).
     let (ready, done) = (std::sync::Barrier::new(publishers + 1), std::sync::Barrier::new(publishers + 1));
     let service = running.service.clone();
-    std::thread::scope(|scope| -> Result<f64> {
+    std::thread::scope(|scope| -> Result<(f64, f64)> {
         let handles: Vec<_> = shares
             .iter()
             .enumerate()
@@ -163,23 +167,32 @@ fn ingest(running: &Running, locator: &str, publishers: usize, sim: &[SimScan]) 
             .collect();
         ready.wait();
         let t0 = Instant::now();
-        let want = sim.len() as u64;
-        let finished = loop {
-            match service.snapshot(MAP) {
-                Ok(s) if s.version >= want => break Ok(t0.elapsed().as_secs_f64()),
-                Ok(_) if t0.elapsed() > TIMEOUT => {
-                    break Err(anyhow::anyhow!("ingest over zenoh did not finish"));
-                }
-                Ok(_) => std::thread::sleep(Duration::from_millis(1)),
-                Err(e) => break Err(e.into()),
-            }
-        };
+        let finished = wait_ingested(&service, sim.len() as u64, t0);
         done.wait();
         for h in handles {
             h.join().map_err(|_| anyhow::anyhow!("a publisher panicked"))??;
         }
         finished
     })
+}
+
+/// Seconds from `t0` until `want` scans are journaled (acknowledged, durable) and until they
+/// are integrated (map version).
+fn wait_ingested(service: &crate::service::MapService, want: u64, t0: Instant) -> Result<(f64, f64)> {
+    let mut journaled = None;
+    loop {
+        let info = service.map_info(MAP)?;
+        if journaled.is_none() && info.sources.values().map(|s| s.received).sum::<u64>() >= want {
+            journaled = Some(t0.elapsed().as_secs_f64());
+        }
+        if let Some(j) = journaled
+            && info.version >= want
+        {
+            return Ok((j, t0.elapsed().as_secs_f64()));
+        }
+        ensure!(t0.elapsed() < TIMEOUT, "ingest over zenoh did not finish: {info:?}");
+        std::thread::sleep(Duration::from_millis(1));
+    }
 }
 
 /// Publisher `p`'s session and its publisher on `bgkmap/bench/scans/robot<p+1>` (congestion
@@ -241,7 +254,13 @@ mod tests {
     fn tiny_zenoh_bench_reports_every_figure() {
         let a = ZenohBenchArgs { scans: 3, publishers: 3, batch: 1000, json: true };
         let v = run_bench(&a).unwrap();
-        for key in ["ingest_scans_per_s", "ingest_points_per_s", "zenoh_points_per_s", "grpc_points_per_s"] {
+        for key in [
+            "journaled_scans_per_s",
+            "ingest_scans_per_s",
+            "ingest_points_per_s",
+            "zenoh_points_per_s",
+            "grpc_points_per_s",
+        ] {
             let x = v[key].as_f64().unwrap_or_else(|| panic!("{key} missing in {v}"));
             assert!(x.is_finite() && x > 0.0, "{key} = {x}");
         }
