@@ -254,6 +254,31 @@ mod tests {
         }
     }
 
+    /// A bucket with many more points than a brick takes between folds (dense hits in one block,
+    /// several at the same spot so cells get the largest sums) still equals the brute force.
+    #[test]
+    fn dense_buckets_fold_in_time() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        let n = 3 * super::super::window::BRICK_POINTS as usize + 5;
+        let spot = |rng: &mut rand_chacha::ChaCha8Rng| std::array::from_fn(|_| rng.random_range(0.02..0.78));
+        let mut hits: Vec<[f64; 3]> = (0..n).map(|_| spot(&mut rng)).collect();
+        hits.extend(std::iter::repeat_n([0.45, 0.45, 0.45], n));
+        let set = TrainingSet { frees: hits[..n / 2].to_vec(), hits, ..Default::default() };
+        let geo = PairGeometry::new(0.1, 0.2);
+        let table = KernelTable::new();
+        let fast = delta_cells(&Scatter::default().delta(&set, &geo, &table));
+        let mut brute = BTreeMap::new();
+        for cell in candidate_cells(&set, &geo) {
+            let (a, b) = brute_force_cell(&set, cell, &geo, &table);
+            if a != 0 || b != 0 {
+                brute.insert(cell, (a, b));
+            }
+        }
+        assert!(brute.values().any(|&(a, _)| a > i64::from(i32::MAX)), "sums beyond an i32 are exercised");
+        assert_eq!(fast, brute);
+    }
+
     #[test]
     fn far_outliers_are_tiled_not_allocated_densely() {
         let set =

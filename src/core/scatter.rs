@@ -18,11 +18,14 @@
 //!
 //! Stencil path: ~190k in-ball pairs per scan at ~13–17 ns per pair (~2.4–3.4 ms), a flat
 //! profile of per-row bookkeeping (~45 instructions per pair). Window path: ~370k lanes per scan
-//! (64 per point, ~52% inside the ball) in 1.5–2.4 ms with the AVX2 lookups of
-//! [`super::simd`], 2.7–3.0 ms without them. Its profile: the 64 lookups ~35% (two gathers per
-//! 8 lanes; gathers are slow on this CPU), window accumulation and point split ~40%, brick folding
-//! ~25%. The next steps: evaluate only the rows inside the ball, fold with vector adds, and
-//! drop the per-scan delta blocks' zeroing by accumulating straight into sparse blocks.
+//! (64 per point, ~52% inside the ball) in 1.3–1.8 ms with the AVX2 lookups of [`super::simd`]
+//! adding straight into an `i32` brick. Whole-ingest profile (perf, `bench ingest`): the 64
+//! lookups + adds ~21% (two gathers per 8 lanes; gathers are slow on this CPU), brick folding
+//! ~20% (stalls on the 8 KiB `i64` delta blocks, which miss L1), point split and window setup
+//! ~13%, training data (voxel hash) ~25%, map update ~6%, zeroing / copying block buffers ~5%.
+//! The next steps: fold bricks straight into the map instead of per-scan delta blocks (the
+//! `ScanDelta` API is what the service journals and subtracts, so this is an API change), and
+//! evaluate only the row pairs inside the ball.
 
 use super::evidence::{BlockEvidence, PairGeometry, ScanDelta, split_point};
 use super::kernel::KernelTable;
@@ -203,6 +206,9 @@ impl Scatter {
             let block = self.grid_block_of_slot(s);
             let origin = block.map(|v| v * B);
             for &(p, hit) in &sorted[start..end] {
+                if self.brick.full() {
+                    self.fold_brick(block);
+                }
                 self.brick.add_point::<W, W3>(p, hit, origin, geo, table);
             }
             self.fold_brick(block);
@@ -225,31 +231,30 @@ impl Scatter {
                 let r = [bit % 3, bit / 3 % 3, bit / 9];
                 let (sx, sy, sz) = (span(r[0]), span(r[1]), span(r[2]));
                 let src = if label == 0 { &mut brick.a } else { &mut brick.b };
-                let rows = || {
-                    (0..sz.2)
-                        .flat_map(move |z| (0..sy.2).map(move |y| ((sz.0 + z) * e + sy.0 + y) * e + sx.0))
-                };
-                // Windows reach their corners with zero mass: allocate only blocks that get some.
-                if rows().all(|from| src[from..from + sx.2].iter().all(|&v| v == 0)) {
-                    continue;
-                }
                 let key = [0, 1, 2].map(|i| block[i] + r[i] as i32 - 1);
-                let idx = delta.block_index(key, spare) as usize;
-                let target = &mut delta.blocks[idx].1;
-                let dst = if label == 0 { &mut target.a } else { &mut target.b };
+                // Windows reach their corners with zero mass: allocate only blocks that get
+                // some. Rows before the first non-zero one need no adding.
+                let mut target: Option<&mut BlockEvidence> = None;
                 for z in 0..sz.2 {
                     for y in 0..sy.2 {
                         let from = ((sz.0 + z) * e + sy.0 + y) * e + sx.0;
-                        let to = ((sz.1 + z) * b + sy.1 + y) * b + sx.1;
-                        for (d, s) in dst[to..to + sx.2].iter_mut().zip(&mut src[from..from + sx.2]) {
-                            *d += *s;
-                            *s = 0;
+                        let row = &mut src[from..from + sx.2];
+                        if target.is_none() {
+                            if row.iter().fold(0, |acc, &v| acc | v) == 0 {
+                                continue;
+                            }
+                            let idx = delta.block_index(key, spare) as usize;
+                            target = Some(&mut delta.blocks[idx].1);
                         }
+                        let Some(blk) = target.as_deref_mut() else { continue };
+                        let dst = if label == 0 { &mut blk.a } else { &mut blk.b };
+                        let to = ((sz.1 + z) * b + sy.1 + y) * b + sx.1;
+                        fold_row(&mut dst[to..to + sx.2], row);
                     }
                 }
             }
         }
-        brick.touched = [0; 2];
+        brick.folded();
     }
 
     fn grid_block_of_slot(&self, s: usize) -> [i32; 3] {
@@ -281,6 +286,34 @@ impl Scatter {
         for (i, &s) in self.bucket_of.iter().enumerate() {
             self.order[next[s as usize] as usize] = i as u32;
             next[s as usize] += 1;
+        }
+    }
+}
+
+/// `dst += src; src = 0` for one brick row (fixed lengths for the block interior and la3dm's
+/// margin, so they compile to a few vector instructions).
+#[inline(always)]
+fn fold_row(dst: &mut [i64], src: &mut [i32]) {
+    #[inline(always)]
+    fn fixed<const N: usize>(dst: &mut [i64], src: &mut [i32]) -> bool {
+        let (Some(d), Some(s)) = (dst.first_chunk_mut::<N>(), src.first_chunk_mut::<N>()) else {
+            return false;
+        };
+        for i in 0..N {
+            d[i] += i64::from(s[i]);
+        }
+        *s = [0; N];
+        true
+    }
+    let done = match src.len() {
+        8 => fixed::<8>(dst, src),
+        2 => fixed::<2>(dst, src),
+        _ => false,
+    };
+    if !done {
+        for (d, s) in dst.iter_mut().zip(src.iter_mut()) {
+            *d += i64::from(*s);
+            *s = 0;
         }
     }
 }

@@ -1,7 +1,8 @@
 //! Explicit AVX2 for the one loop the compiler cannot vectorise: a W = 4 window's 64 kernel
-//! lookups (the table reads are gathers). This is the crate's only `unsafe`: the function needs
-//! AVX2, which [`window_values_w4`] checks at run time (once, cached by std), and every gather
-//! index is clamped to the table before it is read.
+//! lookups (the table reads are gathers), added straight into the brick's rows. This is the
+//! crate's only `unsafe`: the functions need AVX2, which they check at run time (once, cached by
+//! std), every gather index is clamped to the table before it is read, and the brick rows are
+//! bounds-checked once per window before they are written.
 //!
 //! The lanes do exactly the scalar path's operations — IEEE f64 add, multiply and min, the
 //! `1.5·2^52` rounding, i32 interpolation — so both paths give the same bits (tested below and by
@@ -26,10 +27,91 @@ pub fn window_values_w4(axis: &[[f64; 4]; 3], scale: f64, table: &KernelTable, o
     false
 }
 
+/// Adds a W = 4 window's pair values to the 16 rows of 4 cells at `cells[at + (z·e + y)·e ..]`
+/// (a brick of edge `e`), using AVX2 when the CPU has it; returns false (and changes nothing)
+/// when it does not.
+#[inline]
+pub fn add_window_w4(
+    axis: &[[f64; 4]; 3],
+    scale: f64,
+    table: &KernelTable,
+    cells: &mut [i32],
+    at: usize,
+    e: usize,
+) -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        // The last row's end; every other row ends before it.
+        let end = at + (3 * e + 3) * e + 4;
+        assert!(end <= cells.len() && e >= 4, "window outside the brick");
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: AVX2 is present; every row lies in `cells` (asserted just above).
+            unsafe { x86::add_window_w4(axis, scale, table, cells, at, e) };
+            return true;
+        }
+    }
+    let _ = (axis, scale, table, cells, at, e);
+    false
+}
+
 #[cfg(target_arch = "x86_64")]
 mod x86 {
     use super::*;
     use std::arch::x86_64::*;
+
+    /// The lanes of row pair `k < 8` of a W = 4 window: rows (z, y) and (z, y + 1) for
+    /// z = k / 2, y = 2·(k % 2), four x lanes each.
+    #[derive(Clone, Copy)]
+    struct Window<'a> {
+        axis: &'a [[f64; 4]; 3],
+        dx: __m256d,
+        scale: __m256d,
+        values: &'a [i32; TABLE_INTERVALS + 1],
+        slopes: &'a [i32; TABLE_INTERVALS + 1],
+    }
+
+    impl<'a> Window<'a> {
+        #[target_feature(enable = "avx2")]
+        fn new(axis: &'a [[f64; 4]; 3], scale: f64, table: &'a KernelTable) -> Self {
+            let (values, slopes) = table.lanes();
+            // SAFETY: `axis[0]` holds 4 f64.
+            let dx = unsafe { _mm256_loadu_pd(axis[0].as_ptr()) };
+            Self { axis, dx, scale: _mm256_set1_pd(scale), values, slopes }
+        }
+
+        /// The clamped table coordinates of row (z, y), in the low 128 bits.
+        #[target_feature(enable = "avx2")]
+        fn coords(&self, z: usize, y: usize) -> __m128i {
+            let row = _mm256_set1_pd(self.axis[2][z] + self.axis[1][y]);
+            let v = _mm256_min_pd(
+                _mm256_mul_pd(_mm256_add_pd(row, self.dx), self.scale),
+                _mm256_set1_pd(f64::from(COORD_CUTOFF)),
+            );
+            let bits = _mm256_castpd_si256(_mm256_add_pd(v, _mm256_set1_pd(ROUND_MAGIC)));
+            // Low 32 bits of each 64-bit lane, gathered into the low 128 bits.
+            let low_halves = _mm256_setr_epi32(0, 2, 4, 6, 0, 2, 4, 6);
+            _mm256_castsi256_si128(_mm256_permutevar8x32_epi32(bits, low_halves))
+        }
+
+        #[target_feature(enable = "avx2")]
+        fn row_pair(&self, k: usize) -> __m256i {
+            let (z, y) = (k / 2, (k % 2) * 2);
+            let xq = _mm256_set_m128i(self.coords(z, y + 1), self.coords(z, y));
+            let j = _mm256_srli_epi32::<COORD_SHIFT_I32>(xq);
+            let frac = _mm256_and_si256(xq, _mm256_set1_epi32((1 << COORD_SHIFT) - 1));
+            // SAFETY: xq ≤ COORD_CUTOFF, so every index j ≤ TABLE_INTERVALS < table length.
+            let (v, s) = unsafe {
+                (
+                    _mm256_i32gather_epi32::<4>(self.values.as_ptr(), j),
+                    _mm256_i32gather_epi32::<4>(self.slopes.as_ptr(), j),
+                )
+            };
+            let half = _mm256_set1_epi32(1 << (COORD_SHIFT - 1));
+            let interp =
+                _mm256_srai_epi32::<COORD_SHIFT_I32>(_mm256_add_epi32(_mm256_mullo_epi32(s, frac), half));
+            _mm256_add_epi32(v, interp)
+        }
+    }
 
     /// # Safety
     /// The CPU must support AVX2.
@@ -40,40 +122,40 @@ mod x86 {
         table: &KernelTable,
         out: &mut [i32; 64],
     ) {
-        let (values, slopes) = table.lanes();
-        // SAFETY (loads/stores below): `axis[0]` holds 4 f64; `out` holds 64 i32 and row pair
-        // `k < 8` writes lanes 8k..8k+8.
-        let dx = unsafe { _mm256_loadu_pd(axis[0].as_ptr()) };
-        let scale = _mm256_set1_pd(scale);
-        let cutoff = _mm256_set1_pd(f64::from(COORD_CUTOFF));
-        let magic = _mm256_set1_pd(ROUND_MAGIC);
-        // Low 32 bits of each 64-bit lane, gathered into the low 128 bits.
-        let low_halves = _mm256_setr_epi32(0, 2, 4, 6, 0, 2, 4, 6);
-        let frac_mask = _mm256_set1_epi32((1 << COORD_SHIFT) - 1);
-        let half = _mm256_set1_epi32(1 << (COORD_SHIFT - 1));
-        let coords = |z: usize, y: usize| -> __m128i {
-            let row = _mm256_set1_pd(axis[2][z] + axis[1][y]);
-            let v = _mm256_min_pd(_mm256_mul_pd(_mm256_add_pd(row, dx), scale), cutoff);
-            let bits = _mm256_castpd_si256(_mm256_add_pd(v, magic));
-            _mm256_castsi256_si128(_mm256_permutevar8x32_epi32(bits, low_halves))
-        };
+        let w = Window::new(axis, scale, table);
+        for k in 0..8 {
+            // SAFETY: `out` holds 64 i32 and row pair `k < 8` writes lanes 8k..8k+8.
+            unsafe { _mm256_storeu_si256(out.as_mut_ptr().add(8 * k).cast(), w.row_pair(k)) };
+        }
+    }
+
+    /// # Safety
+    /// The CPU must support AVX2, and `cells` must hold the row ending at
+    /// `at + (3e + 3)e + 4` (the window's last).
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn add_window_w4(
+        axis: &[[f64; 4]; 3],
+        scale: f64,
+        table: &KernelTable,
+        cells: &mut [i32],
+        at: usize,
+        e: usize,
+    ) {
+        let w = Window::new(axis, scale, table);
+        let base = cells.as_mut_ptr();
         for k in 0..8 {
             let (z, y) = (k / 2, (k % 2) * 2);
-            let xq = _mm256_set_m128i(coords(z, y + 1), coords(z, y));
-            let j = _mm256_srli_epi32::<COORD_SHIFT_I32>(xq);
-            let frac = _mm256_and_si256(xq, frac_mask);
-            // SAFETY: xq ≤ COORD_CUTOFF, so every index j ≤ TABLE_INTERVALS < table length.
-            debug_assert!(values.len() == TABLE_INTERVALS + 1 && slopes.len() == TABLE_INTERVALS + 1);
-            let (v, s) = unsafe {
-                (
-                    _mm256_i32gather_epi32::<4>(values.as_ptr(), j),
-                    _mm256_i32gather_epi32::<4>(slopes.as_ptr(), j),
-                )
-            };
-            let interp =
-                _mm256_srai_epi32::<COORD_SHIFT_I32>(_mm256_add_epi32(_mm256_mullo_epi32(s, frac), half));
-            let lanes = _mm256_add_epi32(v, interp);
-            unsafe { _mm256_storeu_si256(out.as_mut_ptr().add(8 * k).cast(), lanes) };
+            let lanes = w.row_pair(k);
+            // SAFETY: rows (z, y) and (z, y + 1) start at most at the last row's start and
+            // hold 4 cells each, inside `cells` by the caller's contract.
+            unsafe {
+                let r0 = base.add(at + (z * e + y) * e).cast::<__m128i>();
+                let r1 = base.add(at + (z * e + y + 1) * e).cast::<__m128i>();
+                let lo = _mm_add_epi32(_mm_loadu_si128(r0), _mm256_castsi256_si128(lanes));
+                let hi = _mm_add_epi32(_mm_loadu_si128(r1), _mm256_extracti128_si256::<1>(lanes));
+                _mm_storeu_si128(r0, lo);
+                _mm_storeu_si128(r1, hi);
+            }
         }
     }
 
@@ -111,6 +193,19 @@ mod tests {
             super::super::window::window_values_portable::<4, 64>(&axis, scale, &table, &mut slow);
             if std::arch::is_x86_feature_detected!("avx2") {
                 assert_eq!(fast, slow, "f = {f:?}");
+            }
+            // Added into a brick of edge 6 at a random corner, on top of what is there.
+            let (e, at) = (6, rng.random_range(0..2) * 37 + 1);
+            let mut brick: Vec<i32> = (0..6 * 6 * 6).map(|_| rng.random_range(0..1000)).collect();
+            let before = brick.clone();
+            if add_window_w4(&axis, scale, &table, &mut brick, at, e) {
+                for (i, v) in slow.iter().enumerate() {
+                    let (z, y, x) = (i / 16, i / 4 % 4, i % 4);
+                    let c = at + (z * e + y) * e + x;
+                    assert_eq!(brick[c], before[c] + v, "f = {f:?}, lane {i}");
+                    brick[c] = before[c];
+                }
+                assert_eq!(brick, before, "only the window's cells change");
             }
         }
     }
