@@ -2,9 +2,11 @@
 # Runs every check and test of bgkmap from a fresh checkout: formatting, lints, docs, the pure
 # core without optional features, the Rust suite (unit, property and integration tests that
 # start the real binary; the zenoh test also drives a Python peer), then the Python client's
-# tests with grpcurl, curl, eclipse-zenoh and rosbags. Needs the Rust
-# toolchain (clippy, rustfmt; cargo-nextest when present) and python3; tests/python.sh sets up
-# its own virtualenv (and installs curl with apt when missing and running as root).
+# tests with grpcurl, curl, eclipse-zenoh and rosbags, then the web viewer in a browser. Needs the
+# Rust toolchain (clippy, rustfmt; cargo-nextest when present), python3 and node (>= 20);
+# tests/python.sh sets up its own virtualenv (and installs curl with apt when missing and
+# running as root); tests/browser/run.sh installs Debian's chromium (apt) and playwright-core
+# (npm) when missing.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -42,3 +44,6 @@ fi
 step "Python client, grpcurl and curl against the real server"
 cargo build --locked --quiet
 bash tests/python.sh
+
+step "the web viewer in a real browser (chromium + playwright-core, node --test)"
+bash tests/browser/run.sh

@@ -404,6 +404,15 @@ impl pb::map_service_server::MapService for MapGrpc {
     ) -> Result<Response<pb::MapChange>, Status> {
         super::grpc_ops::repose_scans(&self.service, request.into_inner()).await.map(Response::new)
     }
+
+    type WatchUpdatesStream = super::watch::UpdateStream;
+
+    async fn watch_updates(
+        &self,
+        request: Request<pb::WatchUpdatesRequest>,
+    ) -> Result<Response<super::watch::UpdateStream>, Status> {
+        Ok(Response::new(super::watch::watch_updates(&self.service, request.into_inner())?))
+    }
 }
 
 #[cfg(test)]

@@ -1,5 +1,6 @@
 //! HTTP JSON transport (axum), mirroring the gRPC calls under `/v1/…`, plus `/healthz`,
-//! `/readyz` and `/metrics` (Prometheus text).
+//! `/readyz` and `/metrics` (Prometheus text). The web viewer, its binary cells endpoint and
+//! the change stream (SSE) are merged in from [`super::viewer`] and [`super::watch`].
 //!
 //! Handlers parse the body themselves so a bad request gets a 400 whose message names the field
 //! (serde's "missing field `seq`", or ours), convert, call one service method, convert back.
@@ -58,6 +59,10 @@ impl ApiError {
         Self(StatusCode::BAD_REQUEST, msg.into())
     }
 
+    pub(super) fn gone(msg: impl Into<String>) -> Self {
+        Self(StatusCode::GONE, msg.into())
+    }
+
     pub(super) fn internal(msg: impl Into<String>) -> Self {
         Self(StatusCode::INTERNAL_SERVER_ERROR, msg.into())
     }
@@ -98,6 +103,7 @@ async fn readyz(State(st): State<AppState>) -> Response {
 /// The HTTP router.
 pub fn router(service: Arc<MapService>, config: HttpConfig) -> Router {
     let limit = config.max_body_bytes;
+    let viewer = super::viewer::routes(service.clone(), config.max_box_cells);
     let state = AppState { service, config, counters: Arc::default() };
     Router::new()
         .route("/healthz", get(|| async { "ok\n" }))
@@ -114,6 +120,7 @@ pub fn router(service: Arc<MapService>, config: HttpConfig) -> Router {
         .route("/v1/maps/{map}/repose", post(super::http_ops::repose))
         .layer(DefaultBodyLimit::max(limit))
         .with_state(state)
+        .merge(viewer)
 }
 
 pub(super) fn parse<T: serde::de::DeserializeOwned>(body: &Bytes) -> Result<T, ApiError> {

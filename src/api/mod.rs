@@ -20,6 +20,8 @@ mod grpc_ops;
 pub mod http;
 mod http_ops;
 pub mod status;
+pub mod viewer;
+pub mod watch;
 pub mod zenoh_transport;
 
 impl pb::Scan {

@@ -105,6 +105,7 @@ fn print_examples(grpc: std::net::SocketAddr, http: std::net::SocketAddr, dir: &
     // Two query points packed as little-endian f32 (x, y, z): (5, 2, 0.7) and (5, -0.05, 0.7).
     let pts: Vec<u8> = [5.0f32, 2.0, 0.7, 5.0, -0.05, 0.7].iter().flat_map(|v| v.to_le_bytes()).collect();
     let b64 = base64(&pts);
+    println!("\nSee the map, live, in a browser: http://{http}/");
     println!("\nTry (while the demo serves):");
     println!("  curl -s http://{http}/v1/maps/demo");
     println!(

@@ -1,4 +1,4 @@
-//! `bgkmap export`: CSV, OctoMap `.bt` and PLY.
+//! `bgkmap export`: CSV, OctoMap `.bt`, PLY, and a PNG picture of one layer (see [`super::slice`]).
 
 use super::args::{ThresholdArgs, parse_floats, write_output};
 use crate::core::query::{BoxQuery, query_box};
@@ -16,6 +16,8 @@ pub enum Format {
     Csv,
     Bt,
     Ply,
+    /// A top-down picture of one layer of cells (needs --slice and --out).
+    Png,
 }
 
 #[derive(Debug, Args)]
@@ -27,9 +29,12 @@ pub struct ExportArgs {
     /// Only cells inside MINX,MINY,MINZ,MAXX,MAXY,MAXZ (m, world frame).
     #[arg(long = "box", value_parser = parse_box, allow_hyphen_values = true)]
     pub bbox: Option<([f64; 3], [f64; 3])>,
-    /// Output file (stdout when absent).
+    /// Output file (stdout when absent; required for png).
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// For png: the layer to draw, as z=HEIGHT (m).
+    #[arg(long, value_parser = super::slice::parse_slice, allow_hyphen_values = true)]
+    pub slice: Option<f64>,
     #[command(flatten)]
     pub thresholds: ThresholdArgs,
 }
@@ -53,6 +58,9 @@ struct Row {
 pub fn run(a: ExportArgs) -> Result<()> {
     let map = load_map(&a.map)?;
     let th = a.thresholds.resolve(map.params().thresholds)?;
+    if !matches!(a.format, Format::Png) {
+        anyhow::ensure!(a.slice.is_none(), "--slice is only for --format png");
+    }
     let rows = rows(&map, a.bbox, &th)?;
     let res = map.params().resolution_m;
     let bytes = match a.format {
@@ -66,6 +74,7 @@ pub fn run(a: ExportArgs) -> Result<()> {
             write_bt(&BtTree::from_cells(res, cells, true)?)
         }
         Format::Ply => ply(&rows, res),
+        Format::Png => return super::slice::export_png(&map, a.slice, a.bbox, a.out.as_deref()),
     };
     write_output(a.out.as_ref(), &bytes)
 }

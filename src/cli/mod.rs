@@ -23,6 +23,7 @@ pub mod plot;
 #[cfg(feature = "server")]
 pub mod serve;
 mod simulate;
+mod slice;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
@@ -51,7 +52,7 @@ enum Command {
     Retract(durable::RetractArgs),
     /// Re-integrate scans of a map file under corrected poses, exactly.
     Repose(durable::ReposeArgs),
-    /// Write a map's cells as CSV, OctoMap .bt or PLY.
+    /// Write a map's cells as CSV, OctoMap .bt or PLY, or one layer as a PNG picture.
     Export(export::ExportArgs),
     /// ROC / AUC of a map against a ground-truth OctoMap .bt.
     Eval(eval_cmd::EvalArgs),

@@ -35,7 +35,7 @@ static DEJAVU_SANS: &[u8] = include_bytes!("fonts/DejaVuSans.ttf");
 
 /// The font family name the embedded font is registered under; plotters'
 /// `FontFamily::SansSerif` resolves to it.
-const FONT: &str = "sans-serif";
+pub(crate) const FONT: &str = "sans-serif";
 
 /// Colour-blind-friendly categorical colours (Tableau 10), cycled per curve.
 const PALETTE: [RGBColor; 10] = [
@@ -52,7 +52,7 @@ const PALETTE: [RGBColor; 10] = [
 ];
 
 /// Registers the embedded font with plotters, once per process.
-fn ensure_font() -> anyhow::Result<()> {
+pub(crate) fn ensure_font() -> anyhow::Result<()> {
     static REGISTERED: OnceLock<bool> = OnceLock::new();
     let ok = *REGISTERED.get_or_init(|| register_font(FONT, FontStyle::Normal, DEJAVU_SANS).is_ok());
     ensure!(ok, "the embedded DejaVu Sans font could not be parsed");

@@ -202,6 +202,9 @@ impl Running {
     /// Stops accepting requests, finishes those in flight, drains every map's queue.
     pub async fn shutdown(self) -> Result<()> {
         let _ = self.stop.send(true);
+        // Change streams (gRPC WatchUpdates, HTTP SSE) never end by themselves; end them so
+        // the graceful shutdown does not wait for their connections forever.
+        self.service.close_feeds();
         #[cfg(feature = "zenoh")]
         if let Some(z) = self.zenoh {
             z.shutdown().await;
@@ -226,6 +229,7 @@ pub async fn start(c: &ServerConfig) -> Result<Running> {
         max_unapplied_scans: c.max_unapplied_scans.max(1),
         retention: c.journal_retention.parse::<Retention>().map_err(anyhow::Error::msg)?,
         write_retry: std::time::Duration::from_millis(c.write_retry_ms),
+        ..ServiceConfig::default()
     };
     let dir = c.data_dir.clone();
     let service = Arc::new(

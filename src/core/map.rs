@@ -71,6 +71,11 @@ impl CellEstimate {
         Self { probability, variance, state, evidence: e }
     }
 
+    /// The Beta posterior's parameters `(α, β)`: prior plus kernel-weighted hit / free mass.
+    pub fn alpha_beta(&self, params: &MapParams) -> (f64, f64) {
+        alpha_beta(self.evidence, params)
+    }
+
     /// Eq. 7: `log(α/β)`.
     pub fn log_odds(&self, params: &MapParams) -> f64 {
         let (alpha, beta) = alpha_beta(self.evidence, params);

@@ -14,12 +14,14 @@
 //! take the current snapshot (an `Arc`): they never wait for a writer nor see a half-applied
 //! scan. A full queue (or too many journaled scans waiting for integration) is an answer
 //! ([`ServiceError::Busy`]), not a wait. A failed write makes the map read-only until writing
-//! works again (see the `health` module). On open, journaled scans not yet integrated are replayed before the
+//! works again (see the `health` module). Every new snapshot also goes to the map's change feed
+//! (which blocks changed, see the `feed` module). On open, journaled scans not yet integrated are replayed before the
 //! map serves, so the first snapshot holds every acknowledged scan.
 //!
 //! The service is synchronous (std threads and channels); transports adapt the completion
 //! callbacks to their own runtime. It knows nothing of any wire format.
 
+mod feed;
 mod health;
 mod info;
 mod ingest;
@@ -28,6 +30,7 @@ mod scan;
 mod snapshot;
 mod writer;
 
+pub use feed::{BlockBox, BlockVersions, MapUpdate, Next, ScanPose, Subscription, UpdateKind};
 pub use info::{MapInfo, SourceStats};
 pub use ops::MergeSource;
 pub use scan::{ScanInput, ScanLimits};
@@ -60,6 +63,9 @@ pub struct ServiceConfig {
     pub retention: Retention,
     /// After a failed write, how long before writing is tried again. Default 1 s.
     pub write_retry: Duration,
+    /// Updates each map's change feed keeps for live subscribers (one per published change); one
+    /// that falls further behind is resynchronised from the snapshot. Default 256.
+    pub feed_capacity: usize,
 }
 
 impl Default for ServiceConfig {
@@ -71,6 +77,7 @@ impl Default for ServiceConfig {
             limits: ScanLimits::default(),
             retention: Retention::All,
             write_retry: Duration::from_secs(1),
+            feed_capacity: 256,
         }
     }
 }
@@ -155,6 +162,8 @@ pub(super) struct Shared {
     /// What the journal holds.
     pub stats: Mutex<JournalStats>,
     pub faults: Faults,
+    /// The change feed (see the `feed` module).
+    pub feed: feed::Feed,
 }
 
 /// What a map's journal holds, kept so that a scan counts the moment it is acknowledged.
@@ -315,6 +324,7 @@ impl MapService {
             for j in lock(&h.threads).drain(..) {
                 let _ = j.join();
             }
+            h.shared.feed.close();
         }
     }
 }
@@ -325,5 +335,7 @@ impl Drop for MapService {
     }
 }
 
+#[cfg(test)]
+mod feed_tests;
 #[cfg(test)]
 mod tests;

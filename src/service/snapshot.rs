@@ -2,7 +2,7 @@
 //! corrupt blocks: a query whose answer depends on a block that failed its checksum gets
 //! [`ServiceError::DataLoss`] instead of the prior; queries elsewhere are answered as usual.
 
-use super::ServiceError;
+use super::{BlockVersions, ServiceError};
 use crate::core::key::BLOCK_EDGE;
 use crate::core::{BlockKey, CellKey, EvidenceMap};
 use crate::store::CorruptBlock;
@@ -16,6 +16,11 @@ pub struct Snapshot {
     pub map: EvidenceMap,
     /// Blocks that failed their checks when the map was opened (absent from `map`).
     pub corrupt: Arc<Vec<CorruptBlock>>,
+    /// Per block, the version at which it last changed (see [`super::MapService::changes_since`]).
+    pub block_versions: Arc<BlockVersions>,
+    /// The version the map was opened at: block history is known from there on (see the
+    /// `feed` module).
+    pub history_from: u64,
 }
 
 impl Snapshot {
@@ -147,7 +152,13 @@ mod tests {
 
     fn snap() -> Snapshot {
         let corrupt = vec![CorruptBlock { key: BlockKey::new(2, 0, 0), reason: "checksum mismatch".into() }];
-        Snapshot { version: 1, map: EvidenceMap::new(MapParams::default()), corrupt: Arc::new(corrupt) }
+        Snapshot {
+            version: 1,
+            map: EvidenceMap::new(MapParams::default()),
+            corrupt: Arc::new(corrupt),
+            block_versions: Arc::default(),
+            history_from: 1,
+        }
     }
 
     #[test]

@@ -1,9 +1,12 @@
 //! The writer thread of one map: integrate journaled scans in batches, run the exact
-//! operations in order with them, apply retention, publish snapshots.
+//! operations in order with them, apply retention, publish snapshots and their change-feed
+//! updates.
 
+use super::feed::{BlockVersions, Feed, MapUpdate, ScanPose, UpdateKind};
 use super::health::Faults;
 use super::ops::Op;
 use super::{Ack, Done, JournalStats, ServiceConfig, ServiceError, Shared, Snapshot};
+use crate::core::{BlockKey, EvidenceMap};
 use crate::store::{Change, DurableMap, Pending, Recovered, Retention, now_nanos};
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
@@ -74,10 +77,16 @@ impl Writer {
         if let Some(e) = lost.first() {
             faults.set_damaged(format!("{} acknowledged scans cannot be replayed: {e}", lost.len()));
         }
+        // The per-block history is not stored: every block counts as changed at the version the
+        // map opens at (see the `feed` module).
+        let version = map.version();
+        let block_versions: BlockVersions = map.map().blocks_unsorted().map(|(k, _)| (*k, version)).collect();
         let snapshot = Snapshot {
-            version: map.version(),
+            version,
             map: map.map().clone(),
             corrupt: Arc::new(map.corrupt().to_vec()),
+            block_versions: Arc::new(block_versions),
+            history_from: version,
         };
         let shared = Arc::new(Shared {
             snapshot: RwLock::new(Arc::new(snapshot)),
@@ -91,6 +100,7 @@ impl Writer {
                 in_flight: BTreeMap::new(),
             }),
             faults,
+            feed: Feed::new(config.feed_capacity),
         });
         let waiters = left.iter().map(|_| (None, 0, false)).collect();
         let last_prune = Instant::now().checked_sub(PRUNE_EVERY).unwrap_or_else(Instant::now);
@@ -171,7 +181,19 @@ impl Writer {
                     .zip(&self.waiters)
                     .filter(|(_, w)| w.2)
                     .map(|(p, _)| p.source.as_str());
-                self.publish_applied(in_flight);
+                let first = change.version - self.pending.len() as u64;
+                let poses = self
+                    .pending
+                    .iter()
+                    .zip(first + 1..)
+                    .map(|(p, version)| ScanPose {
+                        version,
+                        source: p.source.clone(),
+                        seq: p.seq,
+                        world_from_sensor: p.scan.world_from_sensor,
+                    })
+                    .collect();
+                self.publish_applied(in_flight, poses);
                 self.pending.clear();
                 for (done, dropped_points, _) in self.waiters.drain(..) {
                     if let Some(done) = done {
@@ -205,20 +227,39 @@ impl Writer {
         }
     }
 
-    /// Publishes the map as it is now: a new snapshot and the journal's content.
+    /// Publishes the map as it is now: a new snapshot, the journal's content and, when the
+    /// version moved, a change-feed update.
     pub(super) fn publish(&self) {
-        self.publish_applied(std::iter::empty());
+        self.publish_applied(std::iter::empty(), Vec::new());
     }
 
     /// As [`Self::publish`], with the scans of `applied` sources (just integrated) no longer in
-    /// flight.
-    fn publish_applied<'a>(&self, applied: impl Iterator<Item = &'a str>) {
+    /// flight and the `poses` of the scans just integrated.
+    fn publish_applied<'a>(&self, applied: impl Iterator<Item = &'a str>, poses: Vec<ScanPose>) {
+        let old = self.shared.snapshot();
+        let version = self.map.version();
+        let (block_versions, blocks) = if version > old.version {
+            let blocks = changed_blocks(&old.map, self.map.map());
+            let mut bv = BlockVersions::clone(&old.block_versions);
+            bv.extend(blocks.iter().map(|k| (*k, version)));
+            (Arc::new(bv), blocks)
+        } else {
+            (old.block_versions.clone(), Vec::new())
+        };
         let snap = Snapshot {
-            version: self.map.version(),
+            version,
             map: self.map.map().clone(),
-            corrupt: self.shared.snapshot().corrupt.clone(),
+            corrupt: old.corrupt.clone(),
+            block_versions,
+            history_from: old.history_from,
         };
         *self.shared.snapshot.write().unwrap_or_else(PoisonError::into_inner) = Arc::new(snap);
+        if version > old.version {
+            // After the snapshot: a subscriber never hears of a version it cannot read.
+            let kind = UpdateKind::Live;
+            let update = MapUpdate { kind, from_version: old.version, version, blocks, poses, reset: false };
+            self.shared.feed.publish(update);
+        }
         let content = Arc::new(self.map.journal().content());
         let mut st = super::lock(&self.shared.stats);
         st.content = content;
@@ -252,4 +293,18 @@ impl Writer {
     fn map_retention(&self) -> Retention {
         self.map.retention()
     }
+}
+
+/// The sorted keys of the blocks that differ between two versions of a map. A change installs
+/// new blocks for exactly the blocks whose evidence changed and shares the others, so comparing
+/// block identities finds them without comparing evidence.
+fn changed_blocks(old: &EvidenceMap, new: &EvidenceMap) -> Vec<BlockKey> {
+    let mut keys: Vec<BlockKey> = new
+        .blocks_unsorted()
+        .filter(|(k, b)| old.block(**k).is_none_or(|o| !std::ptr::eq(o, *b)))
+        .map(|(k, _)| *k)
+        .collect();
+    keys.extend(old.blocks_unsorted().filter(|(k, _)| new.block(**k).is_none()).map(|(k, _)| *k));
+    keys.sort_unstable();
+    keys
 }

@@ -22,6 +22,12 @@ class StopAt(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     __slots__ = ()
     STOP_AT_OCCUPIED: _ClassVar[StopAt]
     STOP_AT_NOT_FREE: _ClassVar[StopAt]
+
+class UpdateKind(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    UPDATE_KIND_CATCH_UP: _ClassVar[UpdateKind]
+    UPDATE_KIND_LIVE: _ClassVar[UpdateKind]
+    UPDATE_KIND_RESYNC: _ClassVar[UpdateKind]
 FRAME_WORLD: Frame
 FRAME_SENSOR: Frame
 CELL_STATE_UNKNOWN: CellState
@@ -29,6 +35,9 @@ CELL_STATE_FREE: CellState
 CELL_STATE_OCCUPIED: CellState
 STOP_AT_OCCUPIED: StopAt
 STOP_AT_NOT_FREE: StopAt
+UPDATE_KIND_CATCH_UP: UpdateKind
+UPDATE_KIND_LIVE: UpdateKind
+UPDATE_KIND_RESYNC: UpdateKind
 
 class MapParams(_message.Message):
     __slots__ = ("resolution", "sf2", "ell", "free_resolution", "ds_resolution", "max_range", "range_mode", "prior_a", "prior_b", "p_free", "p_occ", "var_max")
@@ -393,3 +402,47 @@ class MapChange(_message.Message):
     blocks_changed: int
     version: int
     def __init__(self, scans: _Optional[int] = ..., shared_scans: _Optional[int] = ..., blocks_changed: _Optional[int] = ..., version: _Optional[int] = ...) -> None: ...
+
+class WatchUpdatesRequest(_message.Message):
+    __slots__ = ("map", "min", "max", "since_version")
+    MAP_FIELD_NUMBER: _ClassVar[int]
+    MIN_FIELD_NUMBER: _ClassVar[int]
+    MAX_FIELD_NUMBER: _ClassVar[int]
+    SINCE_VERSION_FIELD_NUMBER: _ClassVar[int]
+    map: str
+    min: _containers.RepeatedScalarFieldContainer[float]
+    max: _containers.RepeatedScalarFieldContainer[float]
+    since_version: int
+    def __init__(self, map: _Optional[str] = ..., min: _Optional[_Iterable[float]] = ..., max: _Optional[_Iterable[float]] = ..., since_version: _Optional[int] = ...) -> None: ...
+
+class SensorPose(_message.Message):
+    __slots__ = ("version", "source", "seq", "world_from_sensor")
+    VERSION_FIELD_NUMBER: _ClassVar[int]
+    SOURCE_FIELD_NUMBER: _ClassVar[int]
+    SEQ_FIELD_NUMBER: _ClassVar[int]
+    WORLD_FROM_SENSOR_FIELD_NUMBER: _ClassVar[int]
+    version: int
+    source: str
+    seq: int
+    world_from_sensor: Pose
+    def __init__(self, version: _Optional[int] = ..., source: _Optional[str] = ..., seq: _Optional[int] = ..., world_from_sensor: _Optional[_Union[Pose, _Mapping]] = ...) -> None: ...
+
+class MapUpdate(_message.Message):
+    __slots__ = ("kind", "from_version", "version", "block", "block_edge", "resolution", "poses", "reset")
+    KIND_FIELD_NUMBER: _ClassVar[int]
+    FROM_VERSION_FIELD_NUMBER: _ClassVar[int]
+    VERSION_FIELD_NUMBER: _ClassVar[int]
+    BLOCK_FIELD_NUMBER: _ClassVar[int]
+    BLOCK_EDGE_FIELD_NUMBER: _ClassVar[int]
+    RESOLUTION_FIELD_NUMBER: _ClassVar[int]
+    POSES_FIELD_NUMBER: _ClassVar[int]
+    RESET_FIELD_NUMBER: _ClassVar[int]
+    kind: UpdateKind
+    from_version: int
+    version: int
+    block: _containers.RepeatedScalarFieldContainer[int]
+    block_edge: int
+    resolution: float
+    poses: _containers.RepeatedCompositeFieldContainer[SensorPose]
+    reset: bool
+    def __init__(self, kind: _Optional[_Union[UpdateKind, str]] = ..., from_version: _Optional[int] = ..., version: _Optional[int] = ..., block: _Optional[_Iterable[int]] = ..., block_edge: _Optional[int] = ..., resolution: _Optional[float] = ..., poses: _Optional[_Iterable[_Union[SensorPose, _Mapping]]] = ..., reset: bool = ...) -> None: ...

@@ -94,6 +94,11 @@ class MapServiceStub(object):
                 request_serializer=bgkmap_dot_v1_dot_bgkmap__pb2.ReposeScansRequest.SerializeToString,
                 response_deserializer=bgkmap_dot_v1_dot_bgkmap__pb2.MapChange.FromString,
                 _registered_method=True)
+        self.WatchUpdates = channel.unary_stream(
+                '/bgkmap.v1.MapService/WatchUpdates',
+                request_serializer=bgkmap_dot_v1_dot_bgkmap__pb2.WatchUpdatesRequest.SerializeToString,
+                response_deserializer=bgkmap_dot_v1_dot_bgkmap__pb2.MapUpdate.FromString,
+                _registered_method=True)
 
 
 class MapServiceServicer(object):
@@ -185,6 +190,15 @@ class MapServiceServicer(object):
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def WatchUpdates(self, request, context):
+        """The map's change stream: first the blocks changed since `since_version` (a catch-up), then
+        one message per change of the map (a batch of integrated scans, a merge, a retraction, a
+        re-pose). Keeps a remote cache of a region up to date.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_MapServiceServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -247,6 +261,11 @@ def add_MapServiceServicer_to_server(servicer, server):
                     servicer.ReposeScans,
                     request_deserializer=bgkmap_dot_v1_dot_bgkmap__pb2.ReposeScansRequest.FromString,
                     response_serializer=bgkmap_dot_v1_dot_bgkmap__pb2.MapChange.SerializeToString,
+            ),
+            'WatchUpdates': grpc.unary_stream_rpc_method_handler(
+                    servicer.WatchUpdates,
+                    request_deserializer=bgkmap_dot_v1_dot_bgkmap__pb2.WatchUpdatesRequest.FromString,
+                    response_serializer=bgkmap_dot_v1_dot_bgkmap__pb2.MapUpdate.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -573,6 +592,33 @@ class MapService(object):
             '/bgkmap.v1.MapService/ReposeScans',
             bgkmap_dot_v1_dot_bgkmap__pb2.ReposeScansRequest.SerializeToString,
             bgkmap_dot_v1_dot_bgkmap__pb2.MapChange.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def WatchUpdates(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_stream(
+            request,
+            target,
+            '/bgkmap.v1.MapService/WatchUpdates',
+            bgkmap_dot_v1_dot_bgkmap__pb2.WatchUpdatesRequest.SerializeToString,
+            bgkmap_dot_v1_dot_bgkmap__pb2.MapUpdate.FromString,
             options,
             channel_credentials,
             insecure,
