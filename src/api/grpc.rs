@@ -5,7 +5,7 @@
 //! [`MapService`] or a read-only query of [`crate::core::query`] on the map's current snapshot,
 //! and converts the answer back. Malformed requests are `INVALID_ARGUMENT` with a message that
 //! starts with the proto field path (`bgkmap.v1.Scan.xyz_f32: length 13 is not a multiple of
-//! 12`); every service error goes through [`to_grpc`], so the codes are those of every other
+//! 12`); every service error goes through [`super::status::to_grpc`], so the codes are those of every other
 //! transport (unknown map `NOT_FOUND`, a full queue `RESOURCE_EXHAUSTED` with `retry-after-ms`).
 //!
 //! Conventions beyond the proto comments:
@@ -24,13 +24,9 @@
 
 use super::pb;
 use super::pb::map_service_server::MapServiceServer;
-use super::status::to_grpc;
 use crate::core::key::BLOCK_CELLS;
-use crate::core::query::{
-    BoxError, BoxQuery, RayHit, StopAt, cast_ray, count_box, for_each_point, query_box,
-};
-use crate::core::{CellKey, CellState, MapParams, PointFrame, Pose, RangeMode, Thresholds};
-use crate::service::{Ack, MapInfo, MapService, ScanInput, ServiceError, Snapshot, SubmitOptions};
+use crate::core::{CellKey, MapParams, RangeMode, Thresholds};
+use crate::service::{MapInfo, MapService, ScanInput, Snapshot};
 use std::pin::Pin;
 use std::sync::Arc;
 use std::task::{Context, Poll};
@@ -53,9 +49,6 @@ impl Default for GrpcConfig {
 
 /// Cells per `ExportChunk`.
 pub const EXPORT_CHUNK_CELLS: usize = 65_536;
-
-/// Query points above which the work moves to a blocking thread.
-const INLINE_POINTS: usize = 10_000;
 
 /// The `bgkmap.v1.MapService` implementation.
 #[derive(Debug, Clone)]
@@ -107,30 +100,10 @@ pub async fn routes_with_health(
 }
 
 // ---------------------------------------------------------------------------------------------
-// Conversions (wire → core). Errors name the proto field path.
+// Conversions (wire → core) shared with zenoh live in `super::calls`; these are gRPC's own.
 
-/// `INVALID_ARGUMENT` naming `bgkmap.v1.<field>`.
-pub(super) fn bad(field: &str, reason: impl std::fmt::Display) -> Status {
-    Status::invalid_argument(format!("bgkmap.v1.{field}: {reason}"))
-}
-
-pub(super) fn service_err(e: ServiceError) -> Status {
-    to_grpc(&e)
-}
-
-/// Exactly three values (x, y, z).
-pub(super) fn vec3(v: &[f64], field: &str) -> Result<[f64; 3], Status> {
-    <[f64; 3]>::try_from(v).map_err(|_| bad(field, format!("expected 3 values (x, y, z), got {}", v.len())))
-}
-
-/// Little-endian f32 triplets.
-fn xyz_f32(bytes: &[u8], field: &str) -> Result<Vec<[f32; 3]>, Status> {
-    if !bytes.len().is_multiple_of(12) {
-        return Err(bad(field, format!("length {} is not a multiple of 12", bytes.len())));
-    }
-    let f = |b: &[u8]| f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
-    Ok(bytes.chunks_exact(12).map(|c| [f(&c[0..4]), f(&c[4..8]), f(&c[8..12])]).collect())
-}
+use super::calls::{ProtoCalls, push_key, thresholds};
+pub(super) use super::calls::{bad, scan_input, service_err, vec3};
 
 fn map_params(p: Option<pb::MapParams>) -> Result<MapParams, Status> {
     let p = p.unwrap_or_default();
@@ -160,80 +133,8 @@ fn map_params(p: Option<pb::MapParams>) -> Result<MapParams, Status> {
     Ok(params)
 }
 
-/// Query thresholds: unset fields take the map's defaults.
-fn thresholds(t: Option<pb::Thresholds>, map_default: Thresholds, field: &str) -> Result<Thresholds, Status> {
-    let t = t.unwrap_or_default();
-    let th = Thresholds {
-        p_free: t.p_free.unwrap_or(map_default.p_free),
-        p_occ: t.p_occ.unwrap_or(map_default.p_occ),
-        var_max: t.var_max.unwrap_or(map_default.var_max),
-    };
-    th.validate().map_err(|e| bad(&format!("{field}.{}", e.name), e.reason))?;
-    Ok(th)
-}
-
-pub(super) fn scan_input(scan: Option<pb::Scan>) -> Result<ScanInput, Status> {
-    let scan = scan.ok_or_else(|| bad("InsertScanRequest.scan", "missing"))?;
-    let pose = scan.world_from_sensor.ok_or_else(|| bad("Scan.world_from_sensor", "missing"))?;
-    let translation_m = <[f64; 3]>::try_from(pose.translation.as_slice()).map_err(|_| {
-        bad(
-            "Scan.world_from_sensor.translation",
-            format!("expected 3 values (x, y, z), got {}", pose.translation.len()),
-        )
-    })?;
-    let rotation_wxyz = <[f64; 4]>::try_from(pose.rotation.as_slice()).map_err(|_| {
-        bad(
-            "Scan.world_from_sensor.rotation",
-            format!("expected 4 values (w, x, y, z), got {}", pose.rotation.len()),
-        )
-    })?;
-    let frame = match pb::Frame::try_from(scan.frame) {
-        Ok(pb::Frame::World) => PointFrame::World,
-        Ok(pb::Frame::Sensor) => PointFrame::Sensor,
-        Err(_) => return Err(bad("Scan.frame", format!("unknown value {}", scan.frame))),
-    };
-    Ok(ScanInput {
-        source: scan.source,
-        seq: scan.seq,
-        world_from_sensor: Pose { translation_m, rotation_wxyz },
-        frame,
-        points: xyz_f32(&scan.xyz_f32, "Scan.xyz_f32")?,
-        max_range_m: scan.max_range,
-        stamp_nanos: scan.stamp_nanos,
-    })
-}
-
-fn stop_at(v: i32) -> Result<StopAt, Status> {
-    match pb::StopAt::try_from(v) {
-        Ok(pb::StopAt::Occupied) => Ok(StopAt::Occupied),
-        Ok(pb::StopAt::NotFree) => Ok(StopAt::NotFree),
-        Err(_) => Err(bad("CastRaysRequest.stop_at", format!("unknown value {v}"))),
-    }
-}
-
-fn cell_state_from_pb(v: i32) -> Result<CellState, Status> {
-    match pb::CellState::try_from(v) {
-        Ok(pb::CellState::Free) => Ok(CellState::Free),
-        Ok(pb::CellState::Occupied) => Ok(CellState::Occupied),
-        Ok(pb::CellState::Unknown) => Ok(CellState::Unknown),
-        Err(_) => Err(bad("QueryBoxRequest.state", format!("unknown value {v}"))),
-    }
-}
-
 // ---------------------------------------------------------------------------------------------
 // Conversions (core → wire).
-
-fn cell_state_to_pb(s: CellState) -> i32 {
-    match s {
-        CellState::Free => pb::CellState::Free as i32,
-        CellState::Occupied => pb::CellState::Occupied as i32,
-        CellState::Unknown => pb::CellState::Unknown as i32,
-    }
-}
-
-fn push_key(out: &mut Vec<i32>, k: CellKey) {
-    out.extend_from_slice(&[k.x, k.y, k.z]);
-}
 
 fn map_params_to_pb(p: &MapParams) -> pb::MapParams {
     pb::MapParams {
@@ -278,45 +179,19 @@ fn map_info_to_pb(info: MapInfo) -> pb::MapInfo {
                 gaps: s.gaps,
                 pruned: s.pruned,
                 retracted: s.retracted,
+                dropped_points: s.dropped_points,
             })
             .collect(),
     }
-}
-
-/// Refuses an answer that would not fit in one message.
-fn fits<M: prost::Message>(msg: M, limit: usize, what: &str, hint: &str) -> Result<M, Status> {
-    let len = msg.encoded_len();
-    if len > limit {
-        return Err(bad(
-            what,
-            format!("the answer is {len} bytes, over the message limit of {limit}; {hint}"),
-        ));
-    }
-    Ok(msg)
-}
-
-/// Runs `f` on a blocking thread when `heavy`, else inline.
-async fn compute<T: Send + 'static>(
-    heavy: bool,
-    f: impl FnOnce() -> Result<T, Status> + Send + 'static,
-) -> Result<T, Status> {
-    if !heavy {
-        return f();
-    }
-    tokio::task::spawn_blocking(f).await.map_err(|e| Status::internal(format!("query task failed: {e}")))?
 }
 
 // ---------------------------------------------------------------------------------------------
 // Handlers.
 
 impl MapGrpc {
-    /// Submits one scan and waits until it is durable (or, with `wait_applied`, integrated).
-    async fn insert(&self, map: &str, scan: ScanInput, wait_applied: bool) -> Result<Ack, Status> {
-        let rx = self.submit(map, scan, wait_applied)?;
-        match rx.await {
-            Ok(r) => r.map_err(service_err),
-            Err(_) => Err(service_err(ServiceError::ShuttingDown)),
-        }
+    /// The calls shared with zenoh, over this port's service and limits.
+    fn calls(&self) -> ProtoCalls {
+        ProtoCalls::new(self.service.clone(), self.config.clone())
     }
 
     /// Submits one scan; the receiver gets its outcome.
@@ -325,116 +200,13 @@ impl MapGrpc {
         map: &str,
         scan: ScanInput,
         wait_applied: bool,
-    ) -> Result<tokio::sync::oneshot::Receiver<Result<Ack, ServiceError>>, Status> {
-        let (tx, rx) = tokio::sync::oneshot::channel();
-        let options = SubmitOptions { wait_applied };
-        self.service.submit(map, scan, options, Box::new(move |r| drop(tx.send(r)))).map_err(service_err)?;
-        Ok(rx)
+    ) -> Result<super::calls::AckReceiver, Status> {
+        self.calls().submit(map, scan, wait_applied)
     }
 
     fn snapshot(&self, map: &str) -> Result<Arc<Snapshot>, Status> {
         self.service.snapshot(map).map_err(service_err)
     }
-}
-
-fn query_points_answer(
-    snap: &Snapshot,
-    points: &[[f64; 3]],
-    th: &Thresholds,
-) -> Result<pb::QueryPointsResponse, Status> {
-    let n = points.len();
-    let mut out = pb::QueryPointsResponse {
-        probability: Vec::with_capacity(n),
-        variance: Vec::with_capacity(n),
-        state: Vec::with_capacity(n),
-        cell: Vec::with_capacity(3 * n),
-        version: snap.version,
-    };
-    let mut outside = None;
-    for_each_point(&snap.map, points, th, |a| match a {
-        Some(a) => {
-            out.probability.push(a.estimate.probability);
-            out.variance.push(a.estimate.variance);
-            out.state.push(cell_state_to_pb(a.estimate.state));
-            push_key(&mut out.cell, a.cell);
-        }
-        None => {
-            outside.get_or_insert(out.probability.len());
-        }
-    });
-    if let Some(i) = outside {
-        return Err(bad("QueryPointsRequest.xyz_f32", format!("point {i} is outside the map's key range")));
-    }
-    Ok(out)
-}
-
-fn query_box_answer(
-    snap: &Snapshot,
-    q: &BoxQuery,
-    th: &Thresholds,
-    max_cells: u64,
-    counts_only: bool,
-) -> Result<pb::QueryBoxResponse, Status> {
-    let cells = query_box(&snap.map, q, th, max_cells).map_err(|e| match e {
-        BoxError::Malformed => bad("QueryBoxRequest.min", e),
-        BoxError::Coarsen(_) => bad("QueryBoxRequest.coarsen", e),
-        BoxError::TooLarge { .. } => bad("QueryBoxRequest", e),
-    })?;
-    let [free, occupied, unknown] = count_box(&cells).map(|n| n as u64);
-    let mut out =
-        pb::QueryBoxResponse { free, occupied, unknown, version: snap.version, ..Default::default() };
-    if !counts_only {
-        let n = cells.len();
-        out.min_cell.reserve(3 * n);
-        out.size_cells.reserve(n);
-        out.probability.reserve(n);
-        out.variance.reserve(n);
-        out.state.reserve(n);
-        for c in &cells {
-            push_key(&mut out.min_cell, c.min_cell);
-            out.size_cells.push(c.size_cells.unsigned_abs());
-            out.probability.push(c.estimate.probability);
-            out.variance.push(c.estimate.variance);
-            out.state.push(cell_state_to_pb(c.estimate.state));
-        }
-    }
-    Ok(out)
-}
-
-struct RayInput {
-    origin: [f64; 3],
-    direction: [f64; 3],
-    max_range: f64,
-}
-
-fn cast_rays_answer(
-    snap: &Snapshot,
-    rays: &[RayInput],
-    stop: StopAt,
-    th: &Thresholds,
-) -> Result<pb::CastRaysResponse, Status> {
-    let mut results = Vec::with_capacity(rays.len());
-    let res = snap.map.params().resolution_m;
-    for (i, r) in rays.iter().enumerate() {
-        let hit = cast_ray(&snap.map, r.origin, r.direction, r.max_range, stop, th)
-            .map_err(|e| bad(&format!("CastRaysRequest.rays[{i}]"), e))?;
-        let reach = match hit {
-            RayHit::Clear => r.max_range,
-            RayHit::Blocked { distance_m, .. } => distance_m + res * 3f64.sqrt(),
-        };
-        snap.check_ray(r.origin, r.direction, reach, &format!("ray {i}")).map_err(service_err)?;
-        results.push(match hit {
-            RayHit::Clear => pb::RayResult { blocked: false, distance: r.max_range, ..Default::default() },
-            RayHit::Blocked { cell, distance_m, estimate } => pb::RayResult {
-                blocked: true,
-                cell: vec![cell.x, cell.y, cell.z],
-                distance: distance_m,
-                state: cell_state_to_pb(estimate.state),
-                probability: estimate.probability,
-            },
-        });
-    }
-    Ok(pb::CastRaysResponse { results, version: snap.version })
 }
 
 /// Sends every cell with evidence (inside `[lo, hi]` keys, if given) sorted by key, in chunks.
@@ -543,7 +315,7 @@ impl pb::map_service_server::MapService for MapGrpc {
     ) -> Result<Response<pb::InsertScanResponse>, Status> {
         let req = request.into_inner();
         let scan = scan_input(req.scan)?;
-        let ack = self.insert(&req.map, scan, req.wait_applied).await?;
+        let ack = self.calls().insert(&req.map, scan, req.wait_applied).await?;
         Ok(Response::new(pb::InsertScanResponse {
             applied: ack.applied,
             version: ack.version,
@@ -562,79 +334,21 @@ impl pb::map_service_server::MapService for MapGrpc {
         &self,
         request: Request<pb::QueryPointsRequest>,
     ) -> Result<Response<pb::QueryPointsResponse>, Status> {
-        let req = request.into_inner();
-        let snap = self.snapshot(&req.map)?;
-        let th = thresholds(req.thresholds, snap.map.params().thresholds, "QueryPointsRequest.thresholds")?;
-        let raw = xyz_f32(&req.xyz_f32, "QueryPointsRequest.xyz_f32")?;
-        let mut points = Vec::with_capacity(raw.len());
-        for (i, p) in raw.iter().enumerate() {
-            if !p.iter().all(|v| v.is_finite()) {
-                return Err(bad("QueryPointsRequest.xyz_f32", format!("point {i} is not finite: {p:?}")));
-            }
-            points.push(p.map(f64::from));
-        }
-        snap.check_points(&points).map_err(service_err)?;
-        let limit = self.config.max_message_bytes;
-        let answer = compute(points.len() > INLINE_POINTS, move || {
-            let out = query_points_answer(&snap, &points, &th)?;
-            fits(out, limit, "QueryPointsRequest.xyz_f32", "query fewer points per request")
-        })
-        .await?;
-        Ok(Response::new(answer))
+        self.calls().query_points(request.into_inner()).await.map(Response::new)
     }
 
     async fn query_box(
         &self,
         request: Request<pb::QueryBoxRequest>,
     ) -> Result<Response<pb::QueryBoxResponse>, Status> {
-        let req = request.into_inner();
-        let snap = self.snapshot(&req.map)?;
-        let th = thresholds(req.thresholds, snap.map.params().thresholds, "QueryBoxRequest.thresholds")?;
-        let min_world = vec3(&req.min, "QueryBoxRequest.min")?;
-        let max_world = vec3(&req.max, "QueryBoxRequest.max")?;
-        let state = req.state.map(cell_state_from_pb).transpose()?;
-        let coarsen = u8::try_from(req.coarsen).ok().filter(|c| *c <= 10).ok_or_else(|| {
-            bad("QueryBoxRequest.coarsen", format!("must be at most 10, got {}", req.coarsen))
-        })?;
-        let q = BoxQuery { min_world, max_world, state, coarsen };
-        snap.check_box(min_world, max_world).map_err(service_err)?;
-        let (max_cells, limit, counts_only) =
-            (self.config.max_box_cells, self.config.max_message_bytes, req.counts_only);
-        let answer = compute(true, move || {
-            let out = query_box_answer(&snap, &q, &th, max_cells, counts_only)?;
-            fits(out, limit, "QueryBoxRequest", "use counts_only, coarsen, a smaller box or Export")
-        })
-        .await?;
-        Ok(Response::new(answer))
+        self.calls().query_box(request.into_inner()).await.map(Response::new)
     }
 
     async fn cast_rays(
         &self,
         request: Request<pb::CastRaysRequest>,
     ) -> Result<Response<pb::CastRaysResponse>, Status> {
-        let req = request.into_inner();
-        let snap = self.snapshot(&req.map)?;
-        let th = thresholds(req.thresholds, snap.map.params().thresholds, "CastRaysRequest.thresholds")?;
-        let stop = stop_at(req.stop_at)?;
-        let rays = req
-            .rays
-            .iter()
-            .enumerate()
-            .map(|(i, r)| {
-                Ok(RayInput {
-                    origin: vec3(&r.origin, &format!("CastRaysRequest.rays[{i}].origin"))?,
-                    direction: vec3(&r.direction, &format!("CastRaysRequest.rays[{i}].direction"))?,
-                    max_range: r.max_range,
-                })
-            })
-            .collect::<Result<Vec<_>, Status>>()?;
-        let limit = self.config.max_message_bytes;
-        let answer = compute(true, move || {
-            let out = cast_rays_answer(&snap, &rays, stop, &th)?;
-            fits(out, limit, "CastRaysRequest.rays", "cast fewer rays per request")
-        })
-        .await?;
-        Ok(Response::new(answer))
+        self.calls().cast_rays(request.into_inner()).await.map(Response::new)
     }
 
     type ExportStream = ExportChunks;
@@ -706,22 +420,6 @@ mod tests {
     use super::*;
 
     #[test]
-    fn xyz_bytes_decode_little_endian_and_reject_partial_triplets() {
-        let mut b = Vec::new();
-        for v in [1.5f32, -2.0, 3.25, 0.0, f32::NAN, 7.0] {
-            b.extend_from_slice(&v.to_le_bytes());
-        }
-        let p = xyz_f32(&b, "Scan.xyz_f32").unwrap();
-        assert_eq!(p.len(), 2);
-        assert_eq!(p[0], [1.5, -2.0, 3.25]);
-        assert!(p[1][1].is_nan());
-        b.push(0);
-        let e = xyz_f32(&b, "Scan.xyz_f32").unwrap_err();
-        assert_eq!(e.code(), tonic::Code::InvalidArgument);
-        assert_eq!(e.message(), "bgkmap.v1.Scan.xyz_f32: length 25 is not a multiple of 12");
-    }
-
-    #[test]
     fn params_default_when_unset_and_round_trip() {
         assert_eq!(map_params(None).unwrap(), MapParams::default());
         let p = MapParams { max_range_m: 5.0, range_mode: RangeMode::Drop, ..MapParams::default() };
@@ -731,26 +429,5 @@ mod tests {
         let e = map_params(Some(pb::MapParams { range_mode: Some("x".into()), ..Default::default() }))
             .unwrap_err();
         assert!(e.message().starts_with("bgkmap.v1.MapParams.range_mode: "), "{}", e.message());
-    }
-
-    #[test]
-    fn pose_lengths_are_checked() {
-        let scan = |t: Vec<f64>, r: Vec<f64>| pb::Scan {
-            source: "a".into(),
-            world_from_sensor: Some(pb::Pose { translation: t, rotation: r }),
-            xyz_f32: vec![0; 12],
-            ..Default::default()
-        };
-        let e = scan_input(Some(scan(vec![0.0; 3], vec![1.0, 0.0, 0.0]))).unwrap_err();
-        assert_eq!(
-            e.message(),
-            "bgkmap.v1.Scan.world_from_sensor.rotation: expected 4 values (w, x, y, z), got 3"
-        );
-        let e = scan_input(Some(scan(vec![0.0; 2], vec![1.0, 0.0, 0.0, 0.0]))).unwrap_err();
-        assert!(e.message().starts_with("bgkmap.v1.Scan.world_from_sensor.translation: "));
-        let s = scan_input(Some(scan(vec![1.0, 2.0, 3.0], vec![1.0, 0.0, 0.0, 0.0]))).unwrap();
-        assert_eq!(s.world_from_sensor, Pose::at([1.0, 2.0, 3.0]));
-        let e = scan_input(Some(pb::Scan { world_from_sensor: None, ..scan(vec![], vec![]) })).unwrap_err();
-        assert_eq!(e.message(), "bgkmap.v1.Scan.world_from_sensor: missing");
     }
 }

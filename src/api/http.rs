@@ -134,7 +134,8 @@ fn info_json(i: &MapInfo) -> Value {
         .map(|(k, s)| {
             let v = json!({"received": s.received, "applied": s.applied, "duplicates": s.duplicates,
                            "rejected": s.rejected, "highest_seq": s.highest_seq, "pending": s.pending,
-                           "gaps": s.gaps, "pruned": s.pruned, "retracted": s.retracted});
+                           "gaps": s.gaps, "pruned": s.pruned, "retracted": s.retracted,
+                           "dropped_points": s.dropped_points});
             (k.clone(), v)
         })
         .collect();
@@ -501,6 +502,13 @@ async fn metrics(State(st): State<AppState>) -> Response {
                     i.name, src
                 );
             }
+        }
+    }
+    let _ = writeln!(out, "# TYPE bgkmap_dropped_points_total counter");
+    for i in &maps {
+        for (src, s) in &i.sources {
+            let (map, n) = (&i.name, s.dropped_points);
+            let _ = writeln!(out, "bgkmap_dropped_points_total{{map=\"{map}\",source=\"{src}\"}} {n}");
         }
     }
     let _ = writeln!(out, "# TYPE bgkmap_integration_seconds_total counter");

@@ -13,6 +13,7 @@ pub mod pb {
     pub const FILE_DESCRIPTOR_SET: &[u8] = tonic::include_file_descriptor_set!("bgkmap_descriptor");
 }
 
+pub mod calls;
 pub mod codec;
 pub mod grpc;
 mod grpc_ops;
@@ -21,6 +22,7 @@ mod http_ops;
 pub mod status;
 pub mod viewer;
 pub mod watch;
+pub mod zenoh_transport;
 
 impl pb::Scan {
     /// A world-frame scan seen from `origin_world` (identity rotation), points packed as

@@ -16,6 +16,10 @@ pub enum BenchCommand {
     /// The map server in-process on loopback: ingest, gRPC / HTTP query throughput and latency.
     #[cfg(feature = "server")]
     Server(super::bench_server::ServerBenchArgs),
+    /// The map server's zenoh session in-process on loopback: scans/s from several publishers,
+    /// point-query throughput over zenoh next to gRPC.
+    #[cfg(feature = "zenoh")]
+    Zenoh(super::bench_zenoh::ZenohBenchArgs),
     /// Durable maps: ingest acknowledged after fsync, restart time and memory of a large map,
     /// exact merge of two.
     #[cfg(feature = "server")]
@@ -66,6 +70,8 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
         BenchCommand::Ingest(a) => ingest(a),
         #[cfg(feature = "server")]
         BenchCommand::Server(a) => super::bench_server::run(a),
+        #[cfg(feature = "zenoh")]
+        BenchCommand::Zenoh(a) => super::bench_zenoh::run(a),
         #[cfg(feature = "server")]
         BenchCommand::Durable(a) => super::bench_durable::run(a),
         #[cfg(feature = "server")]

@@ -36,7 +36,7 @@ pub struct ServerBenchArgs {
     pub json: bool,
 }
 
-const MAP: &str = "bench";
+pub(super) const MAP: &str = "bench";
 /// Interior of the simulated room (metres): x 0..10, y 0..12, z 0..3.
 const ROOM: [f64; 3] = [10.0, 12.0, 3.0];
 /// Rays per CastRays request and points per HTTP request.
@@ -217,7 +217,7 @@ fn random_point(rng: &mut ChaCha8Rng) -> [f64; 3] {
 }
 
 /// [`DISTINCT_BATCHES`] batches of `n` random points inside the room.
-fn random_batches(n: usize, rng: &mut ChaCha8Rng) -> Vec<Vec<[f64; 3]>> {
+pub(super) fn random_batches(n: usize, rng: &mut ChaCha8Rng) -> Vec<Vec<[f64; 3]>> {
     (0..DISTINCT_BATCHES).map(|_| (0..n).map(|_| random_point(rng)).collect()).collect()
 }
 
@@ -225,12 +225,12 @@ pub(super) fn xyz_f32(points: &[[f64; 3]]) -> Vec<u8> {
     points.iter().flat_map(|p| p.iter().flat_map(|&v| (v as f32).to_le_bytes())).collect()
 }
 
-fn points_request(xyz: Vec<u8>) -> pb::QueryPointsRequest {
+pub(super) fn points_request(xyz: Vec<u8>) -> pb::QueryPointsRequest {
     pb::QueryPointsRequest { map: MAP.into(), xyz_f32: xyz, thresholds: None }
 }
 
 /// gRPC QueryPoints throughput, `batch` points per call (after one untimed call).
-async fn grpc_points(client: &mut Client, batch: usize, rng: &mut ChaCha8Rng) -> Result<f64> {
+pub(super) async fn grpc_points(client: &mut Client, batch: usize, rng: &mut ChaCha8Rng) -> Result<f64> {
     let payloads: Vec<Vec<u8>> = random_batches(batch, rng).iter().map(|b| xyz_f32(b)).collect();
     let warm = client.query_points(points_request(payloads[0].clone())).await.context("QueryPoints")?;
     ensure!(warm.get_ref().probability.len() == batch, "QueryPoints answered the wrong number of points");

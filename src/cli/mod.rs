@@ -15,6 +15,8 @@ mod bench_scale;
 #[cfg(feature = "server")]
 mod bench_server;
 mod bench_world;
+#[cfg(feature = "zenoh")]
+mod bench_zenoh;
 mod build;
 #[cfg(feature = "server")]
 mod demo;

@@ -5,6 +5,7 @@
 
 use crate::api::grpc::{GrpcConfig, routes};
 use crate::api::http::{HttpConfig, router};
+use crate::api::zenoh_transport::{ZenohConfig, ZenohMode};
 use crate::service::{MapService, ScanLimits, ServiceConfig};
 use crate::store::Retention;
 use anyhow::{Context, Result};
@@ -42,6 +43,8 @@ pub struct ServerConfig {
     pub max_box_cells: u64,
     /// Largest request message / body in bytes. Default 67108864 (64 MiB).
     pub max_message_bytes: usize,
+    /// The zenoh session (table `[zenoh]`). Default off.
+    pub zenoh: ZenohConfig,
 }
 
 impl Default for ServerConfig {
@@ -58,6 +61,7 @@ impl Default for ServerConfig {
             max_points: 4 << 20,
             max_box_cells: 4_000_000,
             max_message_bytes: 64 << 20,
+            zenoh: ZenohConfig::default(),
         }
     }
 }
@@ -88,6 +92,52 @@ pub struct ServeArgs {
     /// Milliseconds before writing is retried after a failed write (disk full).
     #[arg(long, env = "BGKMAP_WRITE_RETRY_MS")]
     pub write_retry_ms: Option<u64>,
+    #[command(flatten)]
+    pub zenoh: ZenohArgs,
+}
+
+/// zenoh flags; any of them turns the session on.
+#[derive(Debug, Default, Args)]
+pub struct ZenohArgs {
+    /// Open the zenoh session (peer on tcp/127.0.0.1:7450 unless configured otherwise).
+    #[arg(long = "zenoh", env = "BGKMAP_ZENOH")]
+    pub enabled: bool,
+    /// zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7450 (repeatable; replaces the
+    /// configured ones; port 0 picks a free port).
+    #[arg(
+        long = "zenoh-listen",
+        env = "BGKMAP_ZENOH_LISTEN",
+        value_name = "ENDPOINT",
+        value_delimiter = ','
+    )]
+    pub listen: Vec<String>,
+    /// zenoh endpoint to connect to: a peer or a router, e.g. tcp/127.0.0.1:7447 (repeatable).
+    #[arg(
+        long = "zenoh-connect",
+        env = "BGKMAP_ZENOH_CONNECT",
+        value_name = "ENDPOINT",
+        value_delimiter = ','
+    )]
+    pub connect: Vec<String>,
+    /// zenoh session mode.
+    #[arg(long = "zenoh-mode", env = "BGKMAP_ZENOH_MODE")]
+    pub mode: Option<ZenohMode>,
+}
+
+impl ZenohArgs {
+    fn apply(&self, c: &mut ZenohConfig) {
+        if !self.listen.is_empty() {
+            c.listen = self.listen.clone();
+        }
+        if !self.connect.is_empty() {
+            c.connect = self.connect.clone();
+        }
+        if let Some(m) = self.mode {
+            c.mode = m;
+        }
+        c.enabled |=
+            self.enabled || !self.listen.is_empty() || !self.connect.is_empty() || self.mode.is_some();
+    }
 }
 
 impl ServeArgs {
@@ -123,8 +173,12 @@ impl ServeArgs {
             c.write_retry_ms = v;
         }
         c.journal_retention.parse::<Retention>().map_err(anyhow::Error::msg)?;
+        self.zenoh.apply(&mut c.zenoh);
         anyhow::ensure!(c.queue_capacity > 0, "queue_capacity must be > 0");
         anyhow::ensure!(c.threads_per_scan > 0, "threads_per_scan must be > 0");
+        if c.zenoh.enabled {
+            c.zenoh.validate().map_err(anyhow::Error::msg)?;
+        }
         Ok(c)
     }
 }
@@ -135,6 +189,11 @@ pub struct Running {
     pub grpc_addr: SocketAddr,
     pub http_addr: SocketAddr,
     pub service: Arc<MapService>,
+    /// The zenoh session's listening locators (empty without zenoh or in client mode).
+    pub zenoh_locators: Vec<String>,
+    /// The zenoh transport, when enabled.
+    #[cfg(feature = "zenoh")]
+    pub zenoh: Option<crate::api::zenoh_transport::ZenohTransport>,
     tasks: Vec<tokio::task::JoinHandle<Result<()>>>,
     stop: tokio::sync::watch::Sender<bool>,
 }
@@ -146,6 +205,10 @@ impl Running {
         // Change streams (gRPC WatchUpdates, HTTP SSE) never end by themselves; end them so
         // the graceful shutdown does not wait for their connections forever.
         self.service.close_feeds();
+        #[cfg(feature = "zenoh")]
+        if let Some(z) = self.zenoh {
+            z.shutdown().await;
+        }
         for t in self.tasks {
             t.await.context("server task panicked")??;
         }
@@ -157,6 +220,8 @@ impl Running {
 
 /// Opens the data directory, binds both listeners and starts serving.
 pub async fn start(c: &ServerConfig) -> Result<Running> {
+    #[cfg(not(feature = "zenoh"))]
+    anyhow::ensure!(!c.zenoh.enabled, "zenoh is enabled but this bgkmap was built without the zenoh feature");
     let service_config = ServiceConfig {
         queue_capacity: c.queue_capacity,
         threads_per_scan: c.threads_per_scan,
@@ -184,7 +249,8 @@ pub async fn start(c: &ServerConfig) -> Result<Running> {
         let _ = rx.wait_for(|s| *s).await;
     };
     let grpc_config = GrpcConfig { max_box_cells: c.max_box_cells, max_message_bytes: c.max_message_bytes };
-    let grpc_routes = routes(service.clone(), grpc_config).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    let grpc_routes =
+        routes(service.clone(), grpc_config.clone()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
     let grpc = tokio::spawn({
         let rx = stop_rx.clone();
         async move {
@@ -200,7 +266,22 @@ pub async fn start(c: &ServerConfig) -> Result<Running> {
     let http = tokio::spawn(async move {
         axum::serve(http_listener, app).with_graceful_shutdown(stopped(stop_rx)).await.context("HTTP server")
     });
-    Ok(Running { grpc_addr, http_addr, service, tasks: vec![grpc, http], stop })
+    let tasks = vec![grpc, http];
+    #[cfg(feature = "zenoh")]
+    {
+        let zenoh = match c.zenoh.enabled {
+            false => None,
+            true => {
+                let calls = crate::api::calls::ProtoCalls::new(service.clone(), grpc_config.clone());
+                let started = crate::api::zenoh_transport::ZenohTransport::start(calls, &c.zenoh).await;
+                Some(started.context("starting zenoh")?)
+            }
+        };
+        let zenoh_locators = zenoh.as_ref().map(|z| z.locators().to_vec()).unwrap_or_default();
+        Ok(Running { grpc_addr, http_addr, service, zenoh_locators, zenoh, tasks, stop })
+    }
+    #[cfg(not(feature = "zenoh"))]
+    Ok(Running { grpc_addr, http_addr, service, zenoh_locators: Vec::new(), tasks, stop })
 }
 
 /// Accepted connections with Nagle's algorithm off: small answers (single-point queries) must
@@ -250,6 +331,10 @@ pub fn run(a: ServeArgs) -> Result<()> {
     let config = a.resolve()?;
     runtime()?.block_on(async {
         let running = start(&config).await?;
+        // zenoh first: test harnesses read lines until both gRPC and HTTP are reported.
+        for l in &running.zenoh_locators {
+            println!("zenoh listening on {l}");
+        }
         println!("grpc listening on {}", running.grpc_addr);
         println!("http listening on {}", running.http_addr);
         println!("data directory {}", config.data_dir.display());
@@ -281,6 +366,7 @@ mod tests {
             (parsed.max_unapplied_scans, &parsed.journal_retention, parsed.write_retry_ms),
             (d.max_unapplied_scans, &d.journal_retention, d.write_retry_ms)
         );
+        assert_eq!(parsed.zenoh, d.zenoh);
         assert!(toml::from_str::<ServerConfig>("bogus = 1").is_err(), "unknown keys are refused");
     }
 
@@ -298,9 +384,12 @@ mod tests {
             max_box_cells: None,
             journal_retention: Some("7d".into()),
             write_retry_ms: None,
+            zenoh: ZenohArgs { connect: vec!["tcp/127.0.0.1:7447".into()], ..ZenohArgs::default() },
         };
         let c = args.resolve().unwrap();
         assert_eq!((c.queue_capacity, c.max_box_cells), (3, 10));
+        assert!(c.zenoh.enabled, "a zenoh endpoint flag turns zenoh on");
+        assert_eq!((c.zenoh.connect.len(), c.zenoh.listen.len()), (1, 1));
         assert_eq!(c.journal_retention.parse::<Retention>(), Ok(Retention::MaxAgeSeconds(7 * 86_400)));
         let bad = ServeArgs { journal_retention: Some("7 weeks".into()), ..args };
         assert!(bad.resolve().unwrap_err().to_string().contains("unknown unit"));

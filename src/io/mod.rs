@@ -1,4 +1,5 @@
-//! File codecs: PCD scans, OctoMap `.bt` trees, PLY and CSV exports.
+//! File and message codecs: PCD scans, OctoMap `.bt` trees, PLY and CSV exports, ROS 2 messages
+//! (CDR).
 //!
 //! Codecs are pure functions over byte slices and writers; they know nothing about the store or
 //! the network.
@@ -7,4 +8,5 @@ pub mod lzf;
 pub mod octomap;
 pub mod pcd;
 pub mod ply;
+pub mod ros2;
 pub mod scan;

@@ -25,6 +25,9 @@ pub struct SourceStats {
     /// Applied scans whose raw scan was pruned (they cannot be retracted or re-posed).
     pub pruned: u64,
     pub retracted: u64,
+    /// Non-finite input points dropped from this source's scans journaled since the server
+    /// started (duplicates not counted).
+    pub dropped_points: u64,
 }
 
 /// Session counters of one source.
@@ -33,6 +36,7 @@ pub(crate) struct SessionCounts {
     pub received: u64,
     pub duplicates: u64,
     pub rejected: u64,
+    pub dropped_points: u64,
 }
 
 /// What `GetMap` / `ListMaps` report.
@@ -95,7 +99,8 @@ impl MapService {
         }
         for (s, n) in lock(&sh.session).iter() {
             let e = sources.entry(s.clone()).or_default();
-            (e.received, e.duplicates, e.rejected) = (n.received, n.duplicates, n.rejected);
+            (e.received, e.duplicates, e.rejected, e.dropped_points) =
+                (n.received, n.duplicates, n.rejected, n.dropped_points);
         }
         Ok(MapInfo {
             name: name.to_string(),

@@ -71,6 +71,20 @@ impl MapService {
         }
     }
 
+    /// Counts a scan of `source` that a transport refused before it reached the map (a payload
+    /// that does not decode), as `rejected` like a scan that fails validation. The map must
+    /// exist and the source name be valid (1–`max_source_len` bytes), so a stranger cannot grow
+    /// the per-source table with names of any length.
+    pub fn count_rejected(&self, name: &str, source: &str) -> Result<(), ServiceError> {
+        let h = self.handle(name)?;
+        let max = self.config.limits.max_source_len;
+        if source.is_empty() || source.len() > max {
+            return Err(ServiceError::invalid("source", format!("must be 1–{max} bytes")));
+        }
+        h.shared.count(source, |c| c.rejected += 1);
+        Ok(())
+    }
+
     /// Submits a scan and waits until it is integrated (read-your-writes; for synchronous
     /// callers and tests).
     pub fn insert_scan_blocking(&self, name: &str, scan: super::ScanInput) -> Result<Ack, ServiceError> {
@@ -149,6 +163,9 @@ impl Journaler {
             self.shared.count(&s.source, |c| {
                 c.received += 1;
                 c.duplicates += u64::from(entry.is_none());
+                if entry.is_some() {
+                    c.dropped_points += dropped as u64;
+                }
             });
             let Some(entry) = entry else {
                 acks.push((done, ack(false)));

@@ -128,6 +128,24 @@ fn bad_input_is_refused_and_changes_nothing() {
     let mut some_nan = good.clone();
     some_nan.points.push([f32::NAN, 1.0, 1.0]);
     assert_eq!(svc.insert_scan_blocking("m", some_nan).unwrap().dropped_points, 1);
+    assert_eq!(svc.map_info("m").unwrap().sources["robot1"].dropped_points, 1);
+}
+
+#[test]
+fn rejections_before_the_map_are_counted_per_source() {
+    let dir = tempfile::tempdir().unwrap();
+    let svc = MapService::open(dir.path(), ServiceConfig::default()).unwrap();
+    svc.create_map("m", MapParams::default()).unwrap();
+    svc.count_rejected("m", "robot7").unwrap();
+    svc.count_rejected("m", "robot7").unwrap();
+    let s = &svc.map_info("m").unwrap().sources["robot7"];
+    assert_eq!((s.received, s.applied, s.rejected), (0, 0, 2));
+    assert!(matches!(svc.count_rejected("nope", "robot7"), Err(ServiceError::NotFound(_))));
+    let long = "x".repeat(ScanLimits::default().max_source_len + 1);
+    assert!(matches!(svc.count_rejected("m", &long), Err(ServiceError::InvalidArgument { .. })));
+    assert!(matches!(svc.count_rejected("m", ""), Err(ServiceError::InvalidArgument { .. })));
+    assert_eq!(svc.map_info("m").unwrap().sources.len(), 1);
+    assert_eq!(svc.snapshot("m").unwrap().version, 0);
 }
 
 #[test]

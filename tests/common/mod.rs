@@ -208,6 +208,8 @@ pub struct ServeProcess {
     pub grpc_addr: std::net::SocketAddr,
     /// The bound HTTP address (from the `http listening on ADDR` line).
     pub http_addr: std::net::SocketAddr,
+    /// The zenoh locators (`zenoh listening on LOCATOR` lines, printed before gRPC's and HTTP's).
+    pub zenoh_locators: Vec<String>,
     stderr: std::sync::Arc<std::sync::Mutex<String>>,
 }
 
@@ -262,7 +264,7 @@ pub fn start_serve_wrapped(data_dir: &Path, extra: &[&str], wrapper: &[&str]) ->
             let _ = tx.send(line);
         }
     });
-    let (mut grpc, mut http) = (None, None);
+    let (mut grpc, mut http, mut zenoh_locators) = (None, None, Vec::new());
     let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
     while grpc.is_none() || http.is_none() {
         let left = deadline.saturating_duration_since(std::time::Instant::now());
@@ -272,6 +274,8 @@ pub fn start_serve_wrapped(data_dir: &Path, extra: &[&str], wrapper: &[&str]) ->
                     grpc = Some(a.trim().parse().unwrap());
                 } else if let Some(a) = line.strip_prefix("http listening on ") {
                     http = Some(a.trim().parse().unwrap());
+                } else if let Some(l) = line.strip_prefix("zenoh listening on ") {
+                    zenoh_locators.push(l.trim().to_string());
                 }
             }
             Err(_) => {
@@ -284,7 +288,13 @@ pub fn start_serve_wrapped(data_dir: &Path, extra: &[&str], wrapper: &[&str]) ->
             }
         }
     }
-    ServeProcess { child: Some(child), grpc_addr: grpc.unwrap(), http_addr: http.unwrap(), stderr }
+    ServeProcess {
+        child: Some(child),
+        grpc_addr: grpc.unwrap(),
+        http_addr: http.unwrap(),
+        zenoh_locators,
+        stderr,
+    }
 }
 
 impl ServeProcess {

@@ -333,6 +333,7 @@ def _info_from_pb(m: Any) -> Dict[str, Any]:
                 "gaps": int(s.gaps),
                 "pruned": int(s.pruned),
                 "retracted": int(s.retracted),
+                "dropped_points": int(s.dropped_points),
             }
             for s in m.sources
         },
@@ -363,6 +364,7 @@ def _info_from_json(j: Mapping[str, Any]) -> Dict[str, Any]:
                 "gaps": int(s["gaps"]),
                 "pruned": int(s["pruned"]),
                 "retracted": int(s["retracted"]),
+                "dropped_points": int(s.get("dropped_points", 0)),
             }
             for name, s in j.get("sources", {}).items()
         },
@@ -557,7 +559,8 @@ class Client:
         "version" (+1 per integrated scan and per merge / retraction / re-posing), "scans" (in
         the map), "blocks", "cells_with_evidence", "queued", "journal_bytes", "corrupt_blocks",
         "read_only" (None, or why ingest is refused), "sources": {source: {"received", "applied",
-        "duplicates", "rejected", "highest_seq", "pending", "gaps", "pruned", "retracted"}}}``.
+        "duplicates", "rejected", "highest_seq", "pending", "gaps", "pruned", "retracted",
+        "dropped_points"}}}``.
         Unknown maps raise ``BgkmapError`` ``NOT_FOUND``.
         """
         if self.transport == "grpc":

@@ -13,7 +13,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, Iterator, List, Literal, Optional
+from typing import Dict, Iterator, List, Literal, Optional, Sequence
 
 import pytest
 
@@ -65,6 +65,7 @@ class Server:
     stdout_lines: List[str] = field(default_factory=list)
     stderr_path: Optional[Path] = None
     stdout_pump: Optional[threading.Thread] = None
+    zenoh_locators: List[str] = field(default_factory=list)
 
     def client(self, transport: Literal["grpc", "http"] = "grpc") -> Client:
         return Client(self.grpc_address, http_address=self.http_address, transport=transport)
@@ -96,7 +97,8 @@ class Server:
             self.process.stdout.close()
 
 
-def start_server(data_dir: Path) -> Server:
+def start_server(data_dir: Path, extra_args: Sequence[str] = ()) -> Server:
+    """`bgkmap serve` on free loopback ports; `extra_args` are appended (e.g. zenoh flags)."""
     binary = server_binary()
     if not binary.exists():
         pytest.fail(
@@ -118,6 +120,7 @@ def start_server(data_dir: Path) -> Server:
             "127.0.0.1:0",
             "--http-listen",
             "127.0.0.1:0",
+            *extra_args,
         ],
         stdin=subprocess.DEVNULL,
         stdout=subprocess.PIPE,
@@ -139,6 +142,7 @@ def start_server(data_dir: Path) -> Server:
     pump_thread = threading.Thread(target=pump, daemon=True)
     pump_thread.start()
     addrs: Dict[str, str] = {}
+    zenoh_locators: List[str] = []
     deadline = time.monotonic() + START_TIMEOUT_S
     while len(addrs) < 2:
         try:
@@ -153,10 +157,12 @@ def start_server(data_dir: Path) -> Server:
                 proc.stdout.close()
             err = stderr_path.read_text(errors="replace")
             pytest.fail(f"server did not print its addresses; stdout {seen!r}; stderr:\n{err}", pytrace=False)
-        m = re.match(r"(grpc|http) listening on (\S+)", line.strip())
-        if m:
+        m = re.match(r"(grpc|http|zenoh) listening on (\S+)", line.strip())
+        if m and m.group(1) == "zenoh":
+            zenoh_locators.append(m.group(2))  # printed before the gRPC and HTTP lines
+        elif m:
             addrs[m.group(1)] = m.group(2)
-    server = Server(data_dir, proc, addrs["grpc"], addrs["http"], seen, stderr_path, pump_thread)
+    server = Server(data_dir, proc, addrs["grpc"], addrs["http"], seen, stderr_path, pump_thread, zenoh_locators)
     for transport in ("grpc", "http"):
         with server.client(transport) as c:
             c.wait_ready(timeout=START_TIMEOUT_S)

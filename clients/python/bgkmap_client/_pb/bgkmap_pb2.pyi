@@ -92,7 +92,7 @@ class GetMapRequest(_message.Message):
     def __init__(self, map: _Optional[str] = ...) -> None: ...
 
 class SourceStats(_message.Message):
-    __slots__ = ("source", "received", "applied", "duplicates", "rejected", "highest_seq", "pending", "gaps", "pruned", "retracted")
+    __slots__ = ("source", "received", "applied", "duplicates", "rejected", "highest_seq", "pending", "gaps", "pruned", "retracted", "dropped_points")
     SOURCE_FIELD_NUMBER: _ClassVar[int]
     RECEIVED_FIELD_NUMBER: _ClassVar[int]
     APPLIED_FIELD_NUMBER: _ClassVar[int]
@@ -103,6 +103,7 @@ class SourceStats(_message.Message):
     GAPS_FIELD_NUMBER: _ClassVar[int]
     PRUNED_FIELD_NUMBER: _ClassVar[int]
     RETRACTED_FIELD_NUMBER: _ClassVar[int]
+    DROPPED_POINTS_FIELD_NUMBER: _ClassVar[int]
     source: str
     received: int
     applied: int
@@ -113,7 +114,8 @@ class SourceStats(_message.Message):
     gaps: int
     pruned: int
     retracted: int
-    def __init__(self, source: _Optional[str] = ..., received: _Optional[int] = ..., applied: _Optional[int] = ..., duplicates: _Optional[int] = ..., rejected: _Optional[int] = ..., highest_seq: _Optional[int] = ..., pending: _Optional[int] = ..., gaps: _Optional[int] = ..., pruned: _Optional[int] = ..., retracted: _Optional[int] = ...) -> None: ...
+    dropped_points: int
+    def __init__(self, source: _Optional[str] = ..., received: _Optional[int] = ..., applied: _Optional[int] = ..., duplicates: _Optional[int] = ..., rejected: _Optional[int] = ..., highest_seq: _Optional[int] = ..., pending: _Optional[int] = ..., gaps: _Optional[int] = ..., pruned: _Optional[int] = ..., retracted: _Optional[int] = ..., dropped_points: _Optional[int] = ...) -> None: ...
 
 class MapInfo(_message.Message):
     __slots__ = ("map", "params", "version", "blocks", "cells_with_evidence", "queued", "sources", "scans", "journal_bytes", "corrupt_blocks", "read_only")
