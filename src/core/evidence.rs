@@ -214,6 +214,23 @@ mod tests {
             })
     }
 
+    /// The brute-force gather at every cell with evidence. Any cell outside the candidates is
+    /// farther than ell from every point, so gets 0.
+    fn brute_cells(
+        set: &TrainingSet,
+        geo: &PairGeometry,
+        table: &KernelTable,
+    ) -> BTreeMap<CellKey, (i64, i64)> {
+        let mut brute = BTreeMap::new();
+        for cell in candidate_cells(set, geo) {
+            let (a, b) = brute_force_cell(set, cell, geo, table);
+            if a != 0 || b != 0 {
+                brute.insert(cell, (a, b));
+            }
+        }
+        brute
+    }
+
     proptest! {
         #![proptest_config(ProptestConfig::with_cases(32))]
         /// The scatter equals the brute-force gather over all training points, cell by cell.
@@ -224,15 +241,7 @@ mod tests {
             let geo = PairGeometry::new(res, ell);
             let table = KernelTable::new();
             let fast = delta_cells(&Scatter::default().delta(&set, &geo, &table));
-            let mut brute = BTreeMap::new();
-            // Any cell outside the candidates is farther than ell from every point, so gets 0.
-            for cell in candidate_cells(&set, &geo) {
-                let (a, b) = brute_force_cell(&set, cell, &geo, &table);
-                if a != 0 || b != 0 {
-                    brute.insert(cell, (a, b));
-                }
-            }
-            prop_assert_eq!(fast, brute);
+            prop_assert_eq!(fast, brute_cells(&set, &geo, &table));
         }
 
         /// Splitting the points across threads (partial deltas summed) gives the same bits.
@@ -268,13 +277,7 @@ mod tests {
         let geo = PairGeometry::new(0.1, 0.2);
         let table = KernelTable::new();
         let fast = delta_cells(&Scatter::default().delta(&set, &geo, &table));
-        let mut brute = BTreeMap::new();
-        for cell in candidate_cells(&set, &geo) {
-            let (a, b) = brute_force_cell(&set, cell, &geo, &table);
-            if a != 0 || b != 0 {
-                brute.insert(cell, (a, b));
-            }
-        }
+        let brute = brute_cells(&set, &geo, &table);
         assert!(brute.values().any(|&(a, _)| a > i64::from(i32::MAX)), "sums beyond an i32 are exercised");
         assert_eq!(fast, brute);
     }
