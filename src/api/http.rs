@@ -214,11 +214,18 @@ async fn create_map(State(st): State<AppState>, Path(map): Path<String>, body: B
     Ok((StatusCode::CREATED, axum::Json(info_json(&info))).into_response())
 }
 
+/// A sensor pose in JSON (`rotation` as w, x, y, z), for scans and re-poses.
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
-struct PoseJson {
+pub(super) struct PoseJson {
     translation: [f64; 3],
     rotation: [f64; 4],
+}
+
+impl From<PoseJson> for Pose {
+    fn from(p: PoseJson) -> Self {
+        Pose { translation_m: p.translation, rotation_wxyz: p.rotation }
+    }
 }
 
 #[derive(Debug, Deserialize)]
@@ -279,7 +286,7 @@ fn scan_from_json(body: &Bytes) -> Result<ScanInput, ApiError> {
         frame: parse_frame(s.frame.as_deref())?,
         source: s.source,
         seq: s.seq,
-        world_from_sensor: Pose { translation_m: s.pose.translation, rotation_wxyz: s.pose.rotation },
+        world_from_sensor: s.pose.into(),
         points: s.points,
         max_range_m: s.max_range,
         stamp_nanos: s.stamp_nanos,

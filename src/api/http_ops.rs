@@ -8,7 +8,7 @@
 //!
 //! Each answers `{"scans", "shared_scans", "blocks_changed", "version"}`.
 
-use super::http::{ApiError, ApiResult, AppState, parse};
+use super::http::{ApiError, ApiResult, AppState, PoseJson, parse};
 use crate::core::Pose;
 use crate::service::{Change, MergeSource, ServiceError};
 use crate::store::ScanSelector;
@@ -76,13 +76,6 @@ pub(super) async fn retract(State(st): State<AppState>, Path(map): Path<String>,
 
 #[derive(Debug, Deserialize)]
 #[serde(deny_unknown_fields)]
-struct PoseJson {
-    translation: [f64; 3],
-    rotation: [f64; 4],
-}
-
-#[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
 struct ScanPoseJson {
     source: String,
     seq: u64,
@@ -97,13 +90,7 @@ struct ReposeJson {
 
 pub(super) async fn repose(State(st): State<AppState>, Path(map): Path<String>, body: Bytes) -> ApiResult {
     let r: ReposeJson = parse(&body)?;
-    let poses = r
-        .poses
-        .into_iter()
-        .map(|p| {
-            ((p.source, p.seq), Pose { translation_m: p.pose.translation, rotation_wxyz: p.pose.rotation })
-        })
-        .collect();
+    let poses = r.poses.into_iter().map(|p| ((p.source, p.seq), Pose::from(p.pose))).collect();
     let service = st.service.clone();
     blocking(move || service.repose(&map, poses)).await
 }

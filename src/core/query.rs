@@ -197,11 +197,12 @@ pub use super::ray::{MAX_RAY_CELLS, RayError, RayHit, StopAt, cast_ray, traverse
 const _: () = assert!(BLOCK_CELLS == 512);
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::core::{Integrator, MapParams};
 
-    fn room_map() -> EvidenceMap {
+    /// The built-in room after 4 simulated scans (also used by the ray tests).
+    pub(crate) fn room_map() -> EvidenceMap {
         let params = MapParams::default();
         let mut map = EvidenceMap::new(params);
         let (_, scans) = crate::sim::simulate(0, 4, &crate::sim::Lidar::default());

@@ -194,19 +194,8 @@ pub fn traverse(origin_world: [f64; 3], dir_unit: [f64; 3], max_range_m: f64, re
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::core::{Integrator, MapParams};
+    use crate::core::query::tests::room_map;
     use proptest::prelude::*;
-
-    fn room_map() -> EvidenceMap {
-        let params = MapParams::default();
-        let mut map = EvidenceMap::new(params);
-        let (_, scans) = crate::sim::simulate(0, 4, &crate::sim::Lidar::default());
-        let mut integ = Integrator::new(params);
-        for s in &scans {
-            integ.integrate(&mut map, &s.points_world, s.origin, 1);
-        }
-        map
-    }
 
     proptest! {
         #![proptest_config(ProptestConfig::with_cases(200))]

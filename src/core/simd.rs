@@ -12,8 +12,9 @@
 use super::kernel::{COORD_CUTOFF, COORD_SHIFT, KernelTable, ROUND_MAGIC, TABLE_INTERVALS};
 
 /// The 64 pair values of a W = 4 window (z-major, then y, then x) into `out`, using AVX2 when the
-/// CPU has it; returns false (and leaves `out` alone) when it does not.
-#[inline]
+/// CPU has it; returns false (and leaves `out` alone) when it does not. Tests compare these lanes
+/// with the portable path; ingest uses [`add_window_w4`].
+#[cfg(test)]
 pub fn window_values_w4(axis: &[[f64; 4]; 3], scale: f64, table: &KernelTable, out: &mut [i32; 64]) -> bool {
     #[cfg(target_arch = "x86_64")]
     {
@@ -115,6 +116,7 @@ mod x86 {
 
     /// # Safety
     /// The CPU must support AVX2.
+    #[cfg(test)]
     #[target_feature(enable = "avx2")]
     pub(super) unsafe fn window_values_w4(
         axis: &[[f64; 4]; 3],

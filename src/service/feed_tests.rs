@@ -1,30 +1,13 @@
 //! The change feed: catch-up from the snapshot equals following live, lag resyncs, filters.
 
+use super::tests::sim_scans;
 use super::*;
 use crate::core::{BlockKey, PointFrame, Pose};
-use crate::sim::{Lidar, simulate};
 use crate::store::ScanSelector;
 use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::task::{Context, Poll, Wake, Waker};
 use std::time::Duration;
-
-fn sim_scans(n: usize) -> Vec<ScanInput> {
-    let (_, scans) = simulate(0, n, &Lidar::default());
-    scans
-        .into_iter()
-        .enumerate()
-        .map(|(i, s)| ScanInput {
-            source: "robot1".into(),
-            seq: i as u64 + 1,
-            world_from_sensor: Pose::at(s.origin),
-            frame: PointFrame::World,
-            points: s.points_world,
-            max_range_m: None,
-            stamp_nanos: None,
-        })
-        .collect()
-}
 
 fn service(dir: &std::path::Path, feed_capacity: usize) -> MapService {
     let svc = MapService::open(dir, ServiceConfig { feed_capacity, ..Default::default() }).unwrap();

@@ -3,7 +3,8 @@ use crate::core::EvidenceMap;
 use crate::core::{Integrator, PointFrame, Pose};
 use crate::sim::{Lidar, simulate};
 
-fn sim_scans(n: usize) -> Vec<ScanInput> {
+/// `n` simulated room scans as source `robot1`, seq 1..=n (also used by the feed tests).
+pub(super) fn sim_scans(n: usize) -> Vec<ScanInput> {
     let (_, scans) = simulate(0, n, &Lidar::default());
     scans
         .into_iter()
