@@ -58,8 +58,10 @@ pub struct KernelTable {
     /// stays in L1); entries from N on are zero (the cut-off), so clamping to N gives 0 for every
     /// pair at or beyond `l`.
     entries: Box<[[i32; 2]; TABLE_INTERVALS + 2]>,
-    /// The same table split into values and slopes, for lane-wise (SIMD) evaluation.
-    values: Box<[i32; TABLE_INTERVALS + 1]>,
+    /// The same table split into values and slopes, for lane-wise (SIMD) evaluation. `values`
+    /// has one more zero at `N + 1`, so entry `j ≤ N` and its successor read as one 8-byte pair
+    /// whose difference is `slopes[j]`.
+    values: Box<[i32; TABLE_INTERVALS + 2]>,
     slopes: Box<[i32; TABLE_INTERVALS + 1]>,
 }
 
@@ -87,10 +89,11 @@ impl KernelTable {
         for (j, e) in entries.iter_mut().enumerate().take(n) {
             *e = [value(j), value(j + 1) - value(j)];
         }
-        let values = Box::new(std::array::from_fn(|j| entries[j][0]));
+        let values: Box<[i32; TABLE_INTERVALS + 2]> = Box::new(std::array::from_fn(|j| entries[j][0]));
         let slopes: Box<[i32; TABLE_INTERVALS + 1]> = Box::new(std::array::from_fn(|j| entries[j][1]));
         // The lane-wise path interpolates in i32: slope·frac + ½ must not overflow.
         assert!(slopes.iter().all(|s| s.unsigned_abs() < 1 << (31 - COORD_SHIFT)), "kernel slope too steep");
+        assert!((0..=TABLE_INTERVALS).all(|j| values[j + 1] - values[j] == slopes[j]), "slopes are differences");
         Self { entries, values, slopes }
     }
 
@@ -105,8 +108,9 @@ impl KernelTable {
         self.values[j] + ((self.slopes[j] * frac + (1 << (COORD_SHIFT - 1))) >> COORD_SHIFT)
     }
 
-    /// The table's values and slopes (`N + 1` entries each; index `N` is the cut-off, 0).
-    pub fn lanes(&self) -> (&[i32; TABLE_INTERVALS + 1], &[i32; TABLE_INTERVALS + 1]) {
+    /// The table's values and slopes (index `N` is the cut-off, 0; values have one more zero
+    /// at `N + 1`, so `values[j + 1] − values[j] = slopes[j]` for every `j ≤ N`).
+    pub fn lanes(&self) -> (&[i32; TABLE_INTERVALS + 2], &[i32; TABLE_INTERVALS + 1]) {
         (&self.values, &self.slopes)
     }
 

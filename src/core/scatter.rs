@@ -205,11 +205,14 @@ impl Scatter {
             }
             let block = self.grid_block_of_slot(s);
             let origin = block.map(|v| v * B);
-            for &(p, hit) in &sorted[start..end] {
+            let mut rest = &sorted[start..end];
+            while !rest.is_empty() {
                 if self.brick.full() {
                     self.fold_brick(block);
                 }
-                self.brick.add_point::<W, W3>(p, hit, origin, geo, table);
+                let (now, later) = rest.split_at(rest.len().min(self.brick.room()));
+                self.brick.add_points::<W, W3>(now, origin, geo, table);
+                rest = later;
             }
             self.fold_brick(block);
         }

@@ -24,6 +24,7 @@
 use super::evidence::{PairGeometry, floor_i32, split_point};
 use super::kernel::{FIXED_SHIFT, KernelTable};
 use super::key::BLOCK_EDGE;
+use super::scatter::CellPoint;
 
 const B: usize = BLOCK_EDGE as usize;
 
@@ -120,6 +121,68 @@ impl Brick {
         u32::from(i >= self.margin) + u32::from(i >= self.margin + B)
     }
 
+    /// Points the brick takes before it must be folded.
+    pub fn room(&self) -> usize {
+        (BRICK_POINTS - self.points) as usize
+    }
+
+    /// Where the window of the point `p` (cell units) lies: its offset `f` from its cell's
+    /// centre, the first window offset per axis, the brick index of the window's first cell
+    /// and the regions it touches. `block_origin` is the first cell of the bucket's block (the
+    /// point's cell must lie in that block).
+    #[inline(always)]
+    pub(crate) fn place<const W: usize>(&self, p: [f64; 3], block_origin: [i32; 3], ell_cells: f64) -> Placement {
+        let (c, f) = split_point(p);
+        let mut start = [0i32; 3];
+        let mut base = [0usize; 3];
+        let mut regions = [0u32; 3];
+        for a in 0..3 {
+            start[a] = floor_i32(f[a] - ell_cells) + 1;
+            // In the brick: the cell sits at margin + its offset in the block.
+            let b = (c[a] - block_origin[a] + start[a]) as isize + self.margin as isize;
+            debug_assert!(b >= 0 && b as usize + W <= self.edge, "window outside the brick");
+            base[a] = b as usize;
+            // Regions first..=last along this axis, as a 3-bit mask.
+            let (r0, r1) = (self.region(base[a]), self.region(base[a] + W - 1));
+            regions[a] = (0b111 >> (2 - (r1 - r0))) << r0;
+        }
+        let e = self.edge;
+        Placement {
+            f,
+            start,
+            at: (base[2] * e + base[1]) * e + base[0],
+            regions: SPREAD[0][regions[0] as usize]
+                & SPREAD[1][regions[1] as usize]
+                & SPREAD[2][regions[2] as usize],
+        }
+    }
+
+    /// Records one added window of label `hit` that touched `regions`.
+    #[inline(always)]
+    pub(crate) fn note(&mut self, hit: bool, regions: u32) {
+        debug_assert!(self.points < BRICK_POINTS, "brick not folded in time");
+        self.points += 1;
+        self.touched[usize::from(!hit)] |= regions;
+    }
+
+    /// Adds the windows of `pts` (at most [`Self::room`] of them), all in the block starting at
+    /// cell `block_origin`.
+    pub fn add_points<const W: usize, const W3: usize>(
+        &mut self,
+        pts: &[CellPoint],
+        block_origin: [i32; 3],
+        geo: &PairGeometry,
+        table: &KernelTable,
+    ) {
+        assert!(pts.len() <= self.room(), "brick not folded in time");
+        if W == 4 && super::simd::add_points_w4(self, pts, block_origin, geo, table) {
+            return;
+        }
+        for &(p, hit) in pts {
+            self.add_point::<W, W3>(p, hit, block_origin, geo, table);
+        }
+    }
+
     /// Adds one point's window. `p` is in cell units; `block_origin` is the first cell of the
     /// bucket's block (the point's cell must lie in that block).
     #[inline(always)]
@@ -131,34 +194,31 @@ impl Brick {
         geo: &PairGeometry,
         table: &KernelTable,
     ) {
-        let (c, f) = split_point(p);
-        let mut base = [0usize; 3];
-        let mut axis = [[0f64; W]; 3];
-        let mut regions = [0u32; 3];
-        for a in 0..3 {
-            let start = floor_i32(f[a] - geo.ell_cells) + 1;
-            for (k, d2) in axis[a].iter_mut().enumerate() {
-                let d = f64::from(start + k as i32) - f[a];
-                *d2 = d * d;
-            }
-            // In the brick: the cell sits at margin + its offset in the block.
-            let b = (c[a] - block_origin[a] + start) as isize + self.margin as isize;
-            debug_assert!(b >= 0 && b as usize + W <= self.edge, "window outside the brick");
-            base[a] = b as usize;
-            // Regions first..=last along this axis, as a 3-bit mask.
-            let (r0, r1) = (self.region(base[a]), self.region(base[a] + W - 1));
-            regions[a] = (0b111 >> (2 - (r1 - r0))) << r0;
-        }
-        debug_assert!(self.points < BRICK_POINTS, "brick not folded in time");
-        self.points += 1;
+        let pl = self.place::<W>(p, block_origin, geo.ell_cells);
+        let axis: [[f64; W]; 3] = std::array::from_fn(|a| {
+            std::array::from_fn(|k| {
+                let d = f64::from(pl.start[a] + k as i32) - pl.f[a];
+                d * d
+            })
+        });
         let e = self.edge;
-        let at = (base[2] * e + base[1]) * e + base[0];
         let cells = if hit { &mut self.a } else { &mut self.b };
-        add_window::<W, W3>(&axis, geo.scale, table, cells, at, e);
-        let mask =
-            SPREAD[0][regions[0] as usize] & SPREAD[1][regions[1] as usize] & SPREAD[2][regions[2] as usize];
-        self.touched[usize::from(!hit)] |= mask;
+        add_window::<W, W3>(&axis, geo.scale, table, cells, pl.at, e);
+        self.note(hit, pl.regions);
     }
+}
+
+/// Where one point's window lies in a brick (see [`Brick::place`]).
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Placement {
+    /// The point's offset from its cell's centre, per axis, in [−½, ½).
+    pub f: [f64; 3],
+    /// The window's first offset from the point's cell, per axis.
+    pub start: [i32; 3],
+    /// Brick index of the window's first cell.
+    pub at: usize,
+    /// Regions the window touches (bit `9z + 3y + x`).
+    pub regions: u32,
 }
 
 /// Adds one window's W³ pair values to the brick `cells` (edge `e`), whose first cell is `at`.
