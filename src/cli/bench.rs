@@ -1,7 +1,7 @@
 //! `bgkmap bench`: measured figures (never timed tests).
 
 use super::args::{ScanArgs, load_scan};
-use crate::core::{EvidenceMap, Integrator, MapParams};
+use crate::core::{EvidenceMap, Integrator, MapParams, for_each_delta_parallel};
 use crate::io::scan::Scan;
 use crate::sim::{Lidar, simulate};
 use anyhow::Result;
@@ -49,9 +49,12 @@ pub struct IngestArgs {
     /// Timed passes over all scans (after one untimed warm-up pass), each into a fresh map.
     #[arg(long, default_value_t = 5)]
     pub repeat: usize,
-    /// Threads per scan.
+    /// Worker threads: scans are integrated concurrently, one per worker (same bits).
     #[arg(long, default_value_t = 1)]
     pub threads: usize,
+    /// Threads splitting each scan's evidence (same bits); for single large scans.
+    #[arg(long, default_value_t = 1)]
+    pub threads_per_scan: usize,
     /// Maximum range (m); 0 = unlimited. Default 8 (30 with `--lidar64`).
     #[arg(long)]
     pub max_range: Option<f64>,
@@ -101,7 +104,8 @@ fn ingest(a: IngestArgs) -> Result<()> {
     let params = MapParams { max_range_m: max_range, range_mode: a.range_mode, ..Default::default() };
     params.validate()?;
     let threads = a.threads.max(1);
-    let mut integrator = Integrator::new(params);
+    let split = a.threads_per_scan.max(1);
+    let mut workers: Vec<Integrator> = (0..threads).map(|_| Integrator::new(params)).collect();
     let mut per_scan_ms = Vec::new();
     let mut totals_ms = Vec::new();
     // Where the time goes, per scan: training data, evidence scatter, map update.
@@ -109,29 +113,43 @@ fn ingest(a: IngestArgs) -> Result<()> {
     let mut pairs_in = (0usize, 0usize);
     for pass in 0..=a.repeat.max(1) {
         let mut map = EvidenceMap::new(params);
-        let mut total = 0.0;
-        for s in &scans {
-            let t0 = Instant::now();
-            let n_train = integrator.training(&s.points_world, s.origin_world).len();
-            let t1 = Instant::now();
-            let delta = integrator.training_delta(threads);
-            let t2 = Instant::now();
-            map.apply(&delta, 1);
-            let t3 = Instant::now();
-            integrator.recycle(delta);
-            let ms = (t3 - t0).as_secs_f64() * 1e3;
-            total += ms;
-            if pass > 0 {
-                per_scan_ms.push(ms);
-                for (v, d) in phases_ms.iter_mut().zip([t1 - t0, t2 - t1, t3 - t2]) {
-                    v.push(d.as_secs_f64() * 1e3);
+        // Per scan: training points, training and evidence time (the worker's), then map update.
+        let timed = std::sync::Mutex::new(Vec::with_capacity(scans.len()));
+        let t_pass = Instant::now();
+        let mut stage = Vec::new();
+        let done = for_each_delta_parallel(
+            &mut workers,
+            &scans,
+            |integ, s| {
+                let t0 = Instant::now();
+                let n_train = integ.training(&s.points_world, s.origin_world).len();
+                let t1 = Instant::now();
+                let d = integ.training_delta(split);
+                lock(&timed).push((n_train, t1 - t0, t1.elapsed()));
+                Ok::<_, std::convert::Infallible>(d)
+            },
+            |d| {
+                let t = Instant::now();
+                map.apply(d, 1);
+                stage.push(t.elapsed());
+            },
+        );
+        if let Err(never) = done {
+            match never {}
+        }
+        let wall_ms = t_pass.elapsed().as_secs_f64() * 1e3;
+        if pass > 0 {
+            // Workers finish scans in their own order: pair timings by completion order.
+            for ((n_train, train, scatter), apply) in lock(&timed).iter().zip(&stage) {
+                let parts = [*train, *scatter, *apply].map(|d| d.as_secs_f64() * 1e3);
+                per_scan_ms.push(parts.iter().sum());
+                for (v, ms) in phases_ms.iter_mut().zip(parts) {
+                    v.push(ms);
                 }
                 pairs_in.0 += n_train;
                 pairs_in.1 += 1;
             }
-        }
-        if pass > 0 {
-            totals_ms.push(total);
+            totals_ms.push(wall_ms);
         }
     }
     let [mut train_ms, mut scatter_ms, mut apply_ms] = phases_ms;
@@ -146,7 +164,8 @@ fn ingest(a: IngestArgs) -> Result<()> {
     if a.json {
         let v = serde_json::json!({
             "bench": "ingest", "source": source, "scans": scans.len(), "repeat": a.repeat.max(1),
-            "threads": threads, "max_range": max_range,
+            "threads": threads, "threads_per_scan": split, "max_range": max_range,
+            "scans_per_s": scans.len() as f64 / (total_med / 1e3),
             "per_scan_ms_median": med, "per_scan_ms_p90": p90, "total_ms_median": total_med,
             "raw_points": points, "points_per_s": points_per_s,
             "range_mode": params.range_mode.as_str(),
@@ -156,7 +175,7 @@ fn ingest(a: IngestArgs) -> Result<()> {
         println!("{v}");
     } else {
         println!(
-            "ingest {source}: {} scans × {} passes, {threads} thread(s): per scan median {med:.3} ms, p90 {p90:.3} ms; \
+            "ingest {source}: {} scans × {} passes, {threads} worker(s) × {split} thread(s) per scan: per scan median {med:.3} ms, p90 {p90:.3} ms; \
              all scans median {total_med:.2} ms ({:.2} M raw points/s); per-scan medians: training {:.3} ms, \
              evidence {:.3} ms, map update {:.3} ms ({training_points_mean:.0} training points per scan)",
             scans.len(),
@@ -178,4 +197,8 @@ pub(super) fn percentile(v: &mut [f64], q: f64) -> f64 {
     v.sort_by(f64::total_cmp);
     let rank = ((q * v.len() as f64).ceil() as usize).clamp(1, v.len());
     v[rank - 1]
+}
+
+fn lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
 }

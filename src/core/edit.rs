@@ -35,8 +35,8 @@ impl<'a> MapEdit<'a> {
 
     /// Adds (`sign` ≥ 0) or subtracts (`sign` < 0) a scan's evidence.
     pub fn add_delta(&mut self, delta: &ScanDelta, sign: i64) {
-        for (key, d) in &delta.blocks {
-            self.block_mut(*key).add_scaled(d, sign);
+        for (key, d, rows) in delta.iter() {
+            self.block_mut(key).add_rows(d, sign, rows);
         }
     }
 

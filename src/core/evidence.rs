@@ -10,7 +10,7 @@
 //! no hashing per cell). [`brute_force_cell`] is the gather-side reference used by tests.
 
 use super::kernel::{COORD_SHIFT, KernelTable, TABLE_INTERVALS};
-use super::key::{BLOCK_CELLS, BlockKey, CellKey};
+use super::key::{BLOCK_CELLS, BLOCK_EDGE, BlockKey, CellKey};
 use super::training::TrainingSet;
 
 /// Evidence of one block: occupied mass `a` and free mass `b` per cell (fixed-point, unit kernel).
@@ -39,6 +39,44 @@ impl BlockEvidence {
         self.a.iter().zip(&self.b).filter(|(a, b)| **a != 0 || **b != 0).count()
     }
 
+    /// `self += other` (`sign` ≥ 0) or `self -= other` (`sign` < 0) on the rows of `rows`
+    /// (see [`ScanDelta::rows`]): rows whose bit is clear must be zero in `other`.
+    pub fn add_rows(&mut self, other: &BlockEvidence, sign: i64, rows: RowMask) {
+        if rows == ALL_ROWS {
+            return self.add_scaled(other, sign);
+        }
+        for (label, (dst, src)) in [(&mut self.a, &other.a), (&mut self.b, &other.b)].into_iter().enumerate() {
+            let mut m = rows[label];
+            while m != 0 {
+                let r = m.trailing_zeros() as usize * ROW;
+                m &= m - 1;
+                let (d, s) = (&mut dst[r..r + ROW], &src[r..r + ROW]);
+                if sign >= 0 {
+                    d.iter_mut().zip(s).for_each(|(x, y)| *x += y);
+                } else {
+                    d.iter_mut().zip(s).for_each(|(x, y)| *x -= y);
+                }
+            }
+        }
+    }
+
+    /// Zeroes the rows of `rows` (every other row must already be zero).
+    pub fn clear_rows(&mut self, rows: RowMask) {
+        if rows == ALL_ROWS {
+            self.a.fill(0);
+            self.b.fill(0);
+            return;
+        }
+        for (label, cells) in [&mut self.a, &mut self.b].into_iter().enumerate() {
+            let mut m = rows[label];
+            while m != 0 {
+                let r = m.trailing_zeros() as usize * ROW;
+                m &= m - 1;
+                cells[r..r + ROW].fill(0);
+            }
+        }
+    }
+
     /// `self += other` (`sign` ≥ 0) or `self -= other` (`sign` < 0).
     pub fn add_scaled(&mut self, other: &BlockEvidence, sign: i64) {
         // Two plain loops (no multiply) so the compiler vectorises them.
@@ -51,13 +89,35 @@ impl BlockEvidence {
     }
 }
 
+/// Cells per block row (one x run at fixed y, z).
+const ROW: usize = BLOCK_EDGE as usize;
+/// Which rows of a block's `a` (`[0]`) and `b` (`[1]`) may hold evidence: bit `r` for the cells
+/// `8r..8r + 8`, row `r = 8z + y`.
+pub type RowMask = [u64; 2];
+/// Every row.
+pub const ALL_ROWS: RowMask = [u64::MAX; 2];
+const _: () = assert!(BLOCK_CELLS / ROW == 64, "a row mask is one bit per row of a block");
+
 /// The evidence one scan adds: blocks sorted by key.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct ScanDelta {
     pub blocks: Vec<(BlockKey, Box<BlockEvidence>)>,
+    /// Per block, the rows that may hold evidence (all others are zero), so adding a sparse
+    /// delta touches only those; empty means every row.
+    pub rows: Vec<RowMask>,
 }
 
 impl ScanDelta {
+    /// Block `i`'s row mask ([`ALL_ROWS`] when none is kept).
+    pub fn rows_of(&self, i: usize) -> RowMask {
+        self.rows.get(i).copied().unwrap_or(ALL_ROWS)
+    }
+
+    /// Blocks with their row masks.
+    pub fn iter(&self) -> impl Iterator<Item = (BlockKey, &BlockEvidence, RowMask)> {
+        self.blocks.iter().enumerate().map(|(i, (k, b))| (*k, &**b, self.rows_of(i)))
+    }
+
     /// Number of training-point / cell pairs is not kept; this counts cells with evidence.
     pub fn cells_with_evidence(&self) -> usize {
         self.blocks.iter().map(|(_, b)| b.cells_with_evidence()).sum()
@@ -65,16 +125,26 @@ impl ScanDelta {
 
     /// Sums several deltas (e.g. per-thread partial results) into one, sorted by block key.
     pub fn sum(parts: Vec<ScanDelta>) -> ScanDelta {
-        let mut all: Vec<(BlockKey, Box<BlockEvidence>)> = parts.into_iter().flat_map(|d| d.blocks).collect();
-        all.sort_by_key(|(k, _)| *k);
-        let mut out: Vec<(BlockKey, Box<BlockEvidence>)> = Vec::with_capacity(all.len());
-        for (k, b) in all {
-            match out.last_mut() {
-                Some((lk, lb)) if *lk == k => lb.add_scaled(&b, 1),
-                _ => out.push((k, b)),
+        let mut all: Vec<(BlockKey, Box<BlockEvidence>, RowMask)> = Vec::new();
+        for d in parts {
+            let rows: Vec<RowMask> = (0..d.blocks.len()).map(|i| d.rows_of(i)).collect();
+            all.extend(d.blocks.into_iter().zip(rows).map(|((k, b), r)| (k, b, r)));
+        }
+        all.sort_by_key(|(k, _, _)| *k);
+        let mut out = ScanDelta::default();
+        for (k, b, r) in all {
+            match (out.blocks.last_mut(), out.rows.last_mut()) {
+                (Some((lk, lb)), Some(lr)) if *lk == k => {
+                    lb.add_rows(&b, 1, r);
+                    *lr = [lr[0] | r[0], lr[1] | r[1]];
+                }
+                _ => {
+                    out.blocks.push((k, b));
+                    out.rows.push(r);
+                }
             }
         }
-        ScanDelta { blocks: out }
+        out
     }
 }
 

@@ -155,12 +155,12 @@ impl EvidenceMap {
     /// Adds (`sign` = 1) or removes (`sign` = −1) a scan's evidence. Blocks left without any
     /// evidence are dropped, so removing a scan restores the map exactly.
     pub fn apply(&mut self, delta: &ScanDelta, sign: i64) {
-        for (key, d) in &delta.blocks {
-            let shared = self.blocks.entry(*key).or_insert_with(|| Arc::from(BlockEvidence::zeroed()));
+        for (key, d, rows) in delta.iter() {
+            let shared = self.blocks.entry(key).or_insert_with(|| Arc::from(BlockEvidence::zeroed()));
             let blk = Arc::make_mut(shared);
-            blk.add_scaled(d, sign);
+            blk.add_rows(d, sign, rows);
             if sign < 0 && blk.is_empty() {
-                self.blocks.remove(key);
+                self.blocks.remove(&key);
             }
         }
     }
@@ -169,15 +169,14 @@ impl EvidenceMap {
     /// where the block would be left without evidence. Apply them with [`Self::set_blocks`].
     pub fn blocks_after(&self, delta: &ScanDelta, sign: i64) -> Vec<(BlockKey, Option<Arc<BlockEvidence>>)> {
         delta
-            .blocks
             .iter()
-            .map(|(key, d)| {
-                let mut b = match self.blocks.get(key) {
+            .map(|(key, d, rows)| {
+                let mut b = match self.blocks.get(&key) {
                     Some(old) => Box::new((**old).clone()),
                     None => BlockEvidence::zeroed(),
                 };
-                b.add_scaled(d, sign);
-                (*key, (!b.is_empty()).then(|| Arc::from(b)))
+                b.add_rows(d, sign, rows);
+                (key, (!b.is_empty()).then(|| Arc::from(b)))
             })
             .collect()
     }
@@ -337,6 +336,59 @@ impl Integrator {
     }
 }
 
+/// Integrates many scans on one thread per integrator in `workers`: each worker takes the next
+/// scan not yet taken, computes its delta and hands it to `add` (called under a lock, one delta
+/// at a time, in no fixed order) before recycling it. Evidence is integer, so any
+/// order gives the same bits as adding the scans one after another. With one worker (or one scan)
+/// everything runs on the calling thread. The first error by scan order is returned; deltas of
+/// other scans may have been added by then, so callers add into an edit they can drop.
+pub fn for_each_delta_parallel<S, E>(
+    workers: &mut [Integrator],
+    scans: &[S],
+    delta: impl Fn(&mut Integrator, &S) -> Result<ScanDelta, E> + Sync,
+    add: impl FnMut(&ScanDelta) + Send,
+) -> Result<(), E>
+where
+    S: Sync,
+    E: Send,
+{
+    let n = workers.len().min(scans.len());
+    if n <= 1 {
+        let (Some(integ), mut add) = (workers.first_mut(), add) else { return Ok(()) };
+        for s in scans {
+            let d = delta(integ, s)?;
+            add(&d);
+            integ.recycle(d);
+        }
+        return Ok(());
+    }
+    let add = std::sync::Mutex::new(add);
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let (delta, add, next) = (&delta, &add, &next);
+    let results: Vec<Result<(), (usize, E)>> = std::thread::scope(|scope| {
+        let handles: Vec<_> = workers[..n]
+            .iter_mut()
+            .map(|integ| {
+                scope.spawn(move || {
+                    loop {
+                        let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                        let Some(s) = scans.get(i) else { break };
+                        let d = delta(integ, s).map_err(|e| (i, e))?;
+                        (add.lock().unwrap_or_else(std::sync::PoisonError::into_inner))(&d);
+                        integ.recycle(d);
+                    }
+                    Ok(())
+                })
+            })
+            .collect();
+        handles.into_iter().map(|h| h.join().unwrap_or_else(|e| std::panic::resume_unwind(e))).collect()
+    });
+    match results.into_iter().filter_map(Result::err).min_by_key(|(i, _)| *i) {
+        Some((_, e)) => Err(e),
+        None => Ok(()),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -430,6 +482,39 @@ mod tests {
         let mut integ = Integrator::new(params);
         assert_eq!(integ.scan_delta(&pts, o, 1), integ.scan_delta(&pts, o, 2));
         assert_eq!(integ.scan_delta(&pts, o, 1), integ.scan_delta(&pts, o, 5));
+    }
+
+    #[test]
+    fn scans_on_several_workers_give_the_same_bits() {
+        let params = MapParams::default();
+        let scans: Vec<(Vec<[f32; 3]>, [f64; 3])> = (0..7)
+            .map(|i| {
+                let (pts, o) = wall_scan();
+                let shift = i as f32 * 0.013;
+                (pts.into_iter().map(|p| [p[0] + shift, p[1] - shift, p[2]]).collect(), o)
+            })
+            .collect();
+        let delta = |integ: &mut Integrator, s: &(Vec<[f32; 3]>, [f64; 3])| {
+            Ok::<_, std::convert::Infallible>(integ.scan_delta(&s.0, s.1, 1))
+        };
+        let mut serial = EvidenceMap::new(params);
+        for s in &scans {
+            Integrator::new(params).integrate(&mut serial, &s.0, s.1, 1);
+        }
+        for n in [1, 2, 3] {
+            let mut workers: Vec<Integrator> = (0..n).map(|_| Integrator::new(params)).collect();
+            let mut map = EvidenceMap::new(params);
+            for_each_delta_parallel(&mut workers, &scans, delta, |d| map.apply(d, 1)).unwrap();
+            assert_eq!(map.block_keys_sorted(), serial.block_keys_sorted(), "{n} workers");
+            for k in serial.block_keys_sorted() {
+                assert!(map.block(k) == serial.block(k), "{n} workers: block {k:?} differs");
+            }
+        }
+        // The first failing scan's error, by scan order.
+        let mut workers: Vec<Integrator> = (0..3).map(|_| Integrator::new(params)).collect();
+        let fail = |_: &mut Integrator, i: &usize| if *i % 2 == 1 { Err(*i) } else { Ok(ScanDelta::default()) };
+        let err = for_each_delta_parallel(&mut workers, &[0usize, 1, 2, 3, 4, 5], fail, |_| {});
+        assert_eq!(err, Err(1));
     }
 
     #[test]

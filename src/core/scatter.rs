@@ -27,7 +27,7 @@
 //! `ScanDelta` API is what the service journals and subtracts, so this is an API change), and
 //! evaluate only the row pairs inside the ball.
 
-use super::evidence::{BlockEvidence, PairGeometry, ScanDelta, split_point};
+use super::evidence::{BlockEvidence, PairGeometry, RowMask, ScanDelta, split_point};
 use super::kernel::KernelTable;
 use super::key::{BLOCK_EDGE, BLOCK_SHIFT, BlockKey, CellKey};
 use super::window::{Brick, window_shape};
@@ -65,10 +65,13 @@ struct SlotGrid {
     dims: [i64; 3],
     slots: Vec<u32>,
     blocks: Vec<(BlockKey, Box<BlockEvidence>)>,
+    /// Per block, the rows written so far (see [`ScanDelta::rows`]).
+    rows: Vec<RowMask>,
 }
 
 impl SlotGrid {
     fn reset(&mut self, lo: [i32; 3], hi: [i32; 3]) {
+        debug_assert!(self.blocks.is_empty() && self.rows.is_empty(), "blocks handed out before a reset");
         self.min = lo;
         self.dims = [0, 1, 2].map(|i| i64::from(hi[i]) - i64::from(lo[i]) + 1);
         self.slots.clear();
@@ -88,6 +91,7 @@ impl SlotGrid {
             self.slots[s] = self.blocks.len() as u32;
             let fresh = spare.pop().unwrap_or_else(BlockEvidence::zeroed);
             self.blocks.push((BlockKey::new(b[0], b[1], b[2]), fresh));
+            self.rows.push([0; 2]);
         }
         self.slots[s]
     }
@@ -125,9 +129,9 @@ impl Scatter {
 
     /// Returns a delta's blocks for reuse by later scans.
     pub fn recycle(&mut self, delta: ScanDelta) {
-        for (_, mut b) in delta.blocks {
-            b.a.fill(0);
-            b.b.fill(0);
+        let rows: Vec<RowMask> = (0..delta.blocks.len()).map(|i| delta.rows_of(i)).collect();
+        for ((_, mut b), r) in delta.blocks.into_iter().zip(rows) {
+            b.clear_rows(r);
             self.spare.push(b);
         }
     }
@@ -156,14 +160,17 @@ impl Scatter {
             Some((6, margin)) => self.windows::<6, 216>(pts, geo, table, margin),
             _ => self.stencils(pts, geo, table, r, m),
         }
-        let mut blocks = std::mem::take(&mut self.delta.blocks);
+        let blocks = std::mem::take(&mut self.delta.blocks);
+        let rows = std::mem::take(&mut self.delta.rows);
+        let mut all: Vec<_> = blocks.into_iter().zip(rows).collect();
         // A block reached only by pairs whose mass rounds to 0 holds nothing: drop it. (The
         // window path allocates only blocks that receive mass; masses are never negative.)
         if !exact_blocks {
-            blocks.retain(|(_, b)| !b.is_empty());
+            all.retain(|((_, b), _)| !b.is_empty());
         }
-        blocks.sort_unstable_by_key(|(k, _)| *k);
-        ScanDelta { blocks }
+        all.sort_unstable_by_key(|((k, _), _)| *k);
+        let (blocks, rows) = all.into_iter().unzip();
+        ScanDelta { blocks, rows }
     }
 
     /// The general path: per point, the rows of its stencil inside the ball.
@@ -237,22 +244,21 @@ impl Scatter {
                 let key = [0, 1, 2].map(|i| block[i] + r[i] as i32 - 1);
                 // Windows reach their corners with zero mass: allocate only blocks that get
                 // some. Rows before the first non-zero one need no adding.
-                let mut target: Option<&mut BlockEvidence> = None;
+                // Rows that got no mass are skipped (and stay zero in the delta).
+                let mut target: Option<usize> = None;
                 for z in 0..sz.2 {
                     for y in 0..sy.2 {
                         let from = ((sz.0 + z) * e + sy.0 + y) * e + sx.0;
                         let row = &mut src[from..from + sx.2];
-                        if target.is_none() {
-                            if row.iter().fold(0, |acc, &v| acc | v) == 0 {
-                                continue;
-                            }
-                            let idx = delta.block_index(key, spare) as usize;
-                            target = Some(&mut delta.blocks[idx].1);
+                        if row.iter().fold(0, |acc, &v| acc | v) == 0 {
+                            continue;
                         }
-                        let Some(blk) = target.as_deref_mut() else { continue };
+                        let idx = *target.get_or_insert_with(|| delta.block_index(key, spare) as usize);
+                        let blk = &mut delta.blocks[idx].1;
                         let dst = if label == 0 { &mut blk.a } else { &mut blk.b };
-                        let to = ((sz.1 + z) * b + sy.1 + y) * b + sx.1;
-                        fold_row(&mut dst[to..to + sx.2], row);
+                        let r = (sz.1 + z) * b + sy.1 + y;
+                        delta.rows[idx][label] |= 1 << r;
+                        fold_row(&mut dst[r * b + sx.1..r * b + sx.1 + sx.2], row);
                     }
                 }
             }
@@ -344,6 +350,7 @@ impl Targets<'_> {
         }
         let blk = &mut self.scatter.delta.blocks[idx as usize].1;
         let base = CellKey::new(0, y7, z7).index_in_block();
+        self.scatter.delta.rows[idx as usize][usize::from(!hit)] |= 1 << (base / B as usize);
         let cells = if hit { &mut blk.a } else { &mut blk.b };
         &mut cells[base..base + B as usize]
     }
