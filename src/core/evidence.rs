@@ -45,7 +45,8 @@ impl BlockEvidence {
         if rows == ALL_ROWS {
             return self.add_scaled(other, sign);
         }
-        for (label, (dst, src)) in [(&mut self.a, &other.a), (&mut self.b, &other.b)].into_iter().enumerate() {
+        for (label, (dst, src)) in [(&mut self.a, &other.a), (&mut self.b, &other.b)].into_iter().enumerate()
+        {
             let mut m = rows[label];
             while m != 0 {
                 let r = m.trailing_zeros() as usize * ROW;

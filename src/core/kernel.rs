@@ -93,7 +93,10 @@ impl KernelTable {
         let slopes: Box<[i32; TABLE_INTERVALS + 1]> = Box::new(std::array::from_fn(|j| entries[j][1]));
         // The lane-wise path interpolates in i32: slope·frac + ½ must not overflow.
         assert!(slopes.iter().all(|s| s.unsigned_abs() < 1 << (31 - COORD_SHIFT)), "kernel slope too steep");
-        assert!((0..=TABLE_INTERVALS).all(|j| values[j + 1] - values[j] == slopes[j]), "slopes are differences");
+        assert!(
+            (0..=TABLE_INTERVALS).all(|j| values[j + 1] - values[j] == slopes[j]),
+            "slopes are differences"
+        );
         Self { entries, values, slopes }
     }
 

@@ -512,7 +512,8 @@ mod tests {
         }
         // The first failing scan's error, by scan order.
         let mut workers: Vec<Integrator> = (0..3).map(|_| Integrator::new(params)).collect();
-        let fail = |_: &mut Integrator, i: &usize| if *i % 2 == 1 { Err(*i) } else { Ok(ScanDelta::default()) };
+        let fail =
+            |_: &mut Integrator, i: &usize| if *i % 2 == 1 { Err(*i) } else { Ok(ScanDelta::default()) };
         let err = for_each_delta_parallel(&mut workers, &[0usize, 1, 2, 3, 4, 5], fail, |_| {});
         assert_eq!(err, Err(1));
     }

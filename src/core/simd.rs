@@ -58,7 +58,6 @@ pub fn add_window_w4(
     false
 }
 
-
 /// Adds the W = 4 windows of `pts` (all in the block starting at cell `block_origin`, at most
 /// [`Brick::room`] of them) to `brick` with AVX-512 when the CPU has it: each row pair's 8 lanes
 /// read their table entry and its successor with one 64-bit gather (8 gathers per point instead
@@ -202,7 +201,6 @@ mod x86 {
 
     const COORD_SHIFT_I32: i32 = COORD_SHIFT as i32;
 }
-
 
 #[cfg(target_arch = "x86_64")]
 mod x86_512 {

@@ -131,7 +131,12 @@ impl Brick {
     /// and the regions it touches. `block_origin` is the first cell of the bucket's block (the
     /// point's cell must lie in that block).
     #[inline(always)]
-    pub(crate) fn place<const W: usize>(&self, p: [f64; 3], block_origin: [i32; 3], ell_cells: f64) -> Placement {
+    pub(crate) fn place<const W: usize>(
+        &self,
+        p: [f64; 3],
+        block_origin: [i32; 3],
+        ell_cells: f64,
+    ) -> Placement {
         let (c, f) = split_point(p);
         let mut start = [0i32; 3];
         let mut base = [0usize; 3];
