@@ -13,6 +13,7 @@ use bgkmap::io::pcd::read_pcd;
 use bgkmap::io::scan::{PointFrame, scan_from_pcd};
 use common::{ServeProcess, run_ok, start_serve};
 use prost::Message;
+use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 use tonic::transport::Channel;
@@ -383,6 +384,153 @@ async fn malformed_puts_are_counted_per_source_logged_once_and_the_session_keeps
     assert!(stderr.contains("source \"odd\": scan: bgkmap.v1.Scan.xyz_f32: length 13"), "{stderr}");
     assert!(stderr.contains("differs from the key's source"), "{stderr}");
     session.close().await.unwrap();
+    assert_eq!(server.terminate().code(), Some(0));
+}
+
+/// The next change put on a subscriber's updates key: the message and its version attachment.
+async fn next_update(
+    sub: &zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
+) -> pb::MapUpdate {
+    let sample = tokio::time::timeout(Duration::from_secs(60), sub.recv_async()).await.unwrap().unwrap();
+    let u = pb::MapUpdate::decode(sample.payload().to_bytes().as_ref()).unwrap();
+    assert_eq!(
+        sample.attachment().unwrap().to_bytes().as_ref(),
+        &u.version.to_le_bytes(),
+        "version attached"
+    );
+    u
+}
+
+fn block_set(u: &pb::MapUpdate) -> BTreeSet<[i32; 3]> {
+    u.block.chunks(3).map(|c| [c[0], c[1], c[2]]).collect()
+}
+
+fn sim_insert(seq: u64, s: &bgkmap::sim::SimScan) -> pb::InsertScanRequest {
+    pb::InsertScanRequest {
+        map: "m".into(),
+        scan: Some(pb::Scan::world("robot", seq, s.origin, &s.points_world)),
+        // Integrated before the next is sent: one change (one version) per scan.
+        wait_applied: true,
+    }
+}
+
+fn since(version: u64) -> Vec<u8> {
+    pb::WatchUpdatesRequest { since_version: Some(version), ..Default::default() }.encode_to_vec()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_late_zenoh_subscriber_since_n_ends_with_the_same_blocks_as_an_early_one() {
+    use bgkmap::sim::{Lidar, simulate};
+    let dir = tempfile::tempdir().unwrap();
+    let server = start_serve(dir.path(), &ZENOH_FLAGS);
+    let mut client = grpc(&server).await;
+    let early_peer = peer(&server);
+    let early = early_peer.declare_subscriber("bgkmap/m/updates").await.unwrap();
+    // Created after the transport started: followed from version 0.
+    create_map(&mut client, "m").await;
+    let mut grpc_watch = client
+        .watch_updates(pb::WatchUpdatesRequest {
+            map: "m".into(),
+            since_version: Some(0),
+            ..Default::default()
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(grpc_watch.message().await.unwrap().unwrap().kind, pb::UpdateKind::CatchUp as i32);
+
+    let (_, scans) = simulate(0, 8, &Lidar::default());
+    let mut early_blocks = BTreeSet::new();
+    let mut known_at_3 = BTreeSet::new();
+    for (i, s) in scans.iter().enumerate() {
+        let seq = i as u64 + 1;
+        client.insert_scan(sim_insert(seq, s)).await.unwrap();
+        let u = next_update(&early).await;
+        assert_eq!((u.kind, u.from_version, u.version), (pb::UpdateKind::Live as i32, seq - 1, seq));
+        // The same message gRPC WatchUpdates streams.
+        assert_eq!(u, grpc_watch.message().await.unwrap().unwrap(), "zenoh and gRPC differ at {seq}");
+        assert!(!u.block.is_empty() && u.block_edge == 8 && u.resolution == 0.1);
+        assert_eq!(u.poses.iter().map(|p| p.seq).collect::<Vec<_>>(), vec![seq]);
+        early_blocks.extend(block_set(&u));
+        if seq == 3 {
+            // A second planner knew the map up to version 3, then lost its session.
+            known_at_3 = early_blocks.clone();
+        }
+    }
+
+    // It comes back: subscribes first, then asks what changed since the version it holds.
+    let late_peer = peer(&server);
+    let late = late_peer.declare_subscriber("bgkmap/m/updates").await.unwrap();
+    let catch_up =
+        pb::MapUpdate::decode(zget(&late_peer, "bgkmap/m/updates/since", since(3)).await.unwrap().as_slice())
+            .unwrap();
+    assert_eq!(
+        (catch_up.kind, catch_up.from_version, catch_up.version),
+        (pb::UpdateKind::CatchUp as i32, 3, 8)
+    );
+    assert_eq!(catch_up.poses.iter().map(|p| p.seq).collect::<Vec<_>>(), vec![4, 5, 6, 7, 8]);
+    let mut grpc_late = client
+        .watch_updates(pb::WatchUpdatesRequest {
+            map: "m".into(),
+            since_version: Some(3),
+            ..Default::default()
+        })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(catch_up, grpc_late.message().await.unwrap().unwrap(), "the catch-up gRPC sends");
+    let mut late_blocks = known_at_3;
+    late_blocks.extend(block_set(&catch_up));
+    assert_eq!(late_blocks, early_blocks, "the late subscriber knows every block the early one does");
+
+    // Both go on with the next scan.
+    let (_, more) = simulate(1, 1, &Lidar::default());
+    client.insert_scan(sim_insert(9, &more[0])).await.unwrap();
+    let (a, b) = (next_update(&early).await, next_update(&late).await);
+    assert_eq!(a, b);
+    assert_eq!((a.kind, a.from_version, a.version), (pb::UpdateKind::Live as i32, 8, 9));
+    early_blocks.extend(block_set(&a));
+
+    // Bad requests answer the gRPC error, and change nothing.
+    let ahead = zget(&late_peer, "bgkmap/m/updates/since", since(99)).await.unwrap_err();
+    assert!(ahead.starts_with("INVALID_ARGUMENT: bgkmap.v1.WatchUpdatesRequest.since_version: "), "{ahead}");
+    let torn = zget(&late_peer, "bgkmap/m/updates/since", vec![0x08]).await.unwrap_err();
+    assert!(torn.starts_with("INVALID_ARGUMENT: malformed protobuf bgkmap.v1.WatchUpdatesRequest"), "{torn}");
+    let none = zget(&late_peer, "bgkmap/nope/updates/since", since(0)).await.unwrap_err();
+    assert!(none.starts_with("NOT_FOUND: "), "{none}");
+    // A box filter narrows the catch-up to the blocks inside it (2 m around the first pose).
+    let o = scans[0].origin;
+    let (min, max) = (o.map(|c| c - 1.0), o.map(|c| c + 1.0));
+    let boxed = pb::WatchUpdatesRequest {
+        since_version: Some(0),
+        min: min.to_vec(),
+        max: max.to_vec(),
+        ..Default::default()
+    };
+    let decode = |b: Vec<u8>| pb::MapUpdate::decode(b.as_slice()).unwrap();
+    let boxed = decode(zget(&late_peer, "bgkmap/m/updates/since", boxed.encode_to_vec()).await.unwrap());
+    let all = decode(zget(&late_peer, "bgkmap/m/updates/since", since(0)).await.unwrap());
+    let (inside, every) = (block_set(&boxed), block_set(&all));
+    assert_eq!(every, early_blocks);
+    assert!(!inside.is_empty() && inside.len() < every.len() && inside.is_subset(&every));
+    let block_of = |x: f64| (x / 0.8).floor() as i32;
+    assert!(inside.iter().all(|k| (0..3).all(|a| (block_of(min[a])..=block_of(max[a])).contains(&k[a]))));
+    drop((early, late));
+    early_peer.close().await.unwrap();
+    late_peer.close().await.unwrap();
+    assert_eq!(server.terminate().code(), Some(0));
+
+    // After a restart the map is there from the start: its changes are published too.
+    let server = start_serve(dir.path(), &ZENOH_FLAGS);
+    let mut client = grpc(&server).await;
+    let peer = peer(&server);
+    let sub = peer.declare_subscriber("bgkmap/m/updates").await.unwrap();
+    let (_, again) = simulate(2, 1, &Lidar::default());
+    client.insert_scan(sim_insert(10, &again[0])).await.unwrap();
+    let u = next_update(&sub).await;
+    assert_eq!((u.kind, u.from_version, u.version), (pb::UpdateKind::Live as i32, 9, 10));
+    drop(sub);
+    peer.close().await.unwrap();
     assert_eq!(server.terminate().code(), Some(0));
 }
 

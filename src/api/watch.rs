@@ -102,7 +102,8 @@ fn pose_to_pb(p: &ScanPose) -> pb::SensorPose {
     }
 }
 
-fn update_to_pb(u: &MapUpdate, resolution: f64) -> pb::MapUpdate {
+/// A feed update as the wire message (gRPC `WatchUpdates`, zenoh `bgkmap/<map>/updates`).
+pub fn update_to_pb(u: &MapUpdate, resolution: f64) -> pb::MapUpdate {
     let kind = match u.kind {
         UpdateKind::CatchUp => pb::UpdateKind::CatchUp,
         UpdateKind::Live => pb::UpdateKind::Live,
@@ -120,8 +121,11 @@ fn update_to_pb(u: &MapUpdate, resolution: f64) -> pb::MapUpdate {
     }
 }
 
-/// `WatchUpdates`: validates the request and starts the watch.
-pub fn watch_updates(service: &MapService, req: pb::WatchUpdatesRequest) -> Result<UpdateStream, Status> {
+/// The map's resolution and the request's box filter, validated.
+fn watch_filter(
+    service: &MapService,
+    req: &pb::WatchUpdatesRequest,
+) -> Result<(f64, Option<BlockBox>), Status> {
     let snap = service.snapshot(&req.map).map_err(|e| to_grpc(&e))?;
     let resolution = snap.map.params().resolution_m;
     let filter = match (req.min.is_empty(), req.max.is_empty()) {
@@ -132,13 +136,35 @@ pub fn watch_updates(service: &MapService, req: pb::WatchUpdatesRequest) -> Resu
             Some(BlockBox::from_world(min, max, resolution).map_err(|e| bad("WatchUpdatesRequest.min", e))?)
         }
     };
-    let (first, sub) = service.watch(&req.map, req.since_version, filter).map_err(|e| match e {
+    Ok((resolution, filter))
+}
+
+/// A `since_version` ahead of the map is the request's fault.
+fn since_error(e: crate::service::ServiceError) -> Status {
+    match e {
         crate::service::ServiceError::InvalidArgument { reason, .. } => {
             bad("WatchUpdatesRequest.since_version", reason)
         }
         other => to_grpc(&other),
-    })?;
+    }
+}
+
+/// `WatchUpdates`: validates the request and starts the watch.
+pub fn watch_updates(service: &MapService, req: pb::WatchUpdatesRequest) -> Result<UpdateStream, Status> {
+    let (resolution, filter) = watch_filter(service, &req)?;
+    let (first, sub) = service.watch(&req.map, req.since_version, filter).map_err(since_error)?;
     Ok(UpdateStream { watch: Watch { first: Some(first), sub, resolution, closed: false }, ended: false })
+}
+
+/// The catch-up alone: every block changed after `since_version` (0 when unset) inside the
+/// request's box, as the first message of a `WatchUpdates` stream with the same request would
+/// carry it (zenoh `bgkmap/<map>/updates/since`).
+pub fn changes_since(service: &MapService, req: &pb::WatchUpdatesRequest) -> Result<pb::MapUpdate, Status> {
+    let (resolution, filter) = watch_filter(service, req)?;
+    let u = service
+        .changes_since(&req.map, req.since_version.unwrap_or(0), filter.as_ref())
+        .map_err(since_error)?;
+    Ok(update_to_pb(&u, resolution))
 }
 
 // ---------------------------------------------------------------------------------------------

@@ -201,7 +201,12 @@ pub struct MapService {
     data_dir: PathBuf,
     config: ServiceConfig,
     maps: RwLock<BTreeMap<String, Arc<MapHandle>>>,
+    /// Called with the name of every map created (see [`MapService::on_map_created`]).
+    created_hooks: Mutex<Vec<MapCreatedHook>>,
 }
+
+/// A callback told the name of each newly created map.
+type MapCreatedHook = Box<dyn Fn(&str) + Send + Sync>;
 
 impl std::fmt::Debug for MapService {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
@@ -233,7 +238,12 @@ impl MapService {
     pub fn open(data_dir: &Path, config: ServiceConfig) -> Result<Self, ServiceError> {
         std::fs::create_dir_all(data_dir)
             .map_err(|error| StoreError::Io { path: data_dir.to_path_buf(), error })?;
-        let service = Self { data_dir: data_dir.to_path_buf(), config, maps: RwLock::default() };
+        let service = Self {
+            data_dir: data_dir.to_path_buf(),
+            config,
+            maps: RwLock::default(),
+            created_hooks: Mutex::default(),
+        };
         let entries = std::fs::read_dir(data_dir)
             .map_err(|error| StoreError::Io { path: data_dir.to_path_buf(), error })?;
         let mut paths: Vec<PathBuf> = entries
@@ -291,6 +301,9 @@ impl MapService {
     pub fn create_map(&self, name: &str, params: MapParams) -> Result<MapInfo, ServiceError> {
         validate_map_name(name)?;
         params.validate().map_err(|e| ServiceError::invalid(e.name, e.reason))?;
+        // Held from the check to the hooks, so a hook registered meanwhile sees the map either
+        // in its list or through its call, never both and never neither.
+        let hooks = lock(&self.created_hooks);
         if self.handle(name).is_ok() {
             return Err(ServiceError::AlreadyExists(name.to_string()));
         }
@@ -303,7 +316,21 @@ impl MapService {
         })?;
         file.close()?;
         self.start(name.to_string(), &path)?;
+        for hook in hooks.iter() {
+            hook(name);
+        }
+        drop(hooks);
         self.map_info(name)
+    }
+
+    /// Registers `hook`, called with the name of every map created from now on (on the creating
+    /// thread, once the map takes scans; it must not create maps or register hooks itself), and
+    /// returns the names of the maps that exist already: together, every map exactly once. A
+    /// transport that follows every map's change feed (zenoh) registers once at start-up.
+    pub fn on_map_created(&self, hook: impl Fn(&str) + Send + Sync + 'static) -> Vec<String> {
+        let mut hooks = lock(&self.created_hooks);
+        hooks.push(Box::new(hook));
+        self.maps.read().unwrap_or_else(PoisonError::into_inner).keys().cloned().collect()
     }
 
     /// The current snapshot of a map: whole scans only; never blocks on the writer.

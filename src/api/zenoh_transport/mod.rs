@@ -10,13 +10,15 @@
 //! | `bgkmap/<map>/query/points` | query | `QueryPointsRequest` → `QueryPointsResponse` |
 //! | `bgkmap/<map>/query/box` | query | `QueryBoxRequest` → `QueryBoxResponse` |
 //! | `bgkmap/<map>/query/rays` | query | `CastRaysRequest` → `CastRaysResponse` |
-//! | `bgkmap/<map>/updates` | put per change (wired by the change feed) | see [`ZenohTransport::publish_update`] |
+//! | `bgkmap/<map>/updates` | put per change of the map | `bgkmap.v1.MapUpdate`, attachment: version (u64 LE) |
+//! | `bgkmap/<map>/updates/since` | query: the blocks changed since a version | `WatchUpdatesRequest` → `MapUpdate` |
 //! | `<domain>/<topic>/sensor_msgs::msg::dds_::PointCloud2_/*` | ROS 2 clouds (rmw_zenoh) | CDR |
 //!
 //! Scans and queries go through the same [`crate::api::calls`] as gRPC, so validation,
 //! exactly-once `(source, seq)` and every answer are gRPC's. A put that cannot be used is counted
 //! as rejected for its source and logged once ([`ingest`]); queries answer errors with
-//! `reply_err` ([`queries`]). ROS 2 clouds: [`ros_bridge`].
+//! `reply_err` ([`queries`]). The change stream: [`updates`]. ROS 2 clouds:
+//! [`ros_bridge`].
 //!
 //! [`config`] builds without zenoh; everything else needs the `zenoh` feature.
 
@@ -31,6 +33,8 @@ pub mod queries;
 mod ros;
 #[cfg(feature = "zenoh")]
 pub mod ros_bridge;
+#[cfg(feature = "zenoh")]
+pub mod updates;
 
 pub use config::{RosPose, RosTopicConfig, ZenohConfig, ZenohMode};
 #[cfg(feature = "zenoh")]

@@ -3,17 +3,19 @@
 
 use super::config::{ZenohConfig, ZenohMode};
 use super::ingest::{IngestContext, spawn_scan_worker};
-use super::{ZenohError, queries, ros};
+use super::updates::Publishers;
+use super::{ZenohError, queries, ros, updates};
 use crate::api::calls::ProtoCalls;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Duration;
-use zenoh::bytes::Encoding;
 use zenoh::pubsub::Subscriber;
 use zenoh::query::Queryable;
 
 /// How long shutdown waits for queries in flight (acknowledged ingest waits for its scan).
 const DRAIN_QUERIES: Duration = Duration::from_secs(30);
+/// How long shutdown waits for the change-stream publishers to put what their feeds hold.
+const DRAIN_PUBLISHERS: Duration = Duration::from_secs(5);
 
 /// Key of the change stream of `map`.
 pub fn updates_key(map: &str) -> String {
@@ -29,6 +31,7 @@ pub struct ZenohTransport {
     workers: Vec<std::thread::JoinHandle<()>>,
     in_flight: Arc<AtomicUsize>,
     ingest: Arc<IngestContext>,
+    publishers: Arc<Publishers>,
 }
 
 impl std::fmt::Debug for ZenohTransport {
@@ -61,6 +64,7 @@ impl ZenohTransport {
         let session = zenoh::open(session_config(config)?).await.map_err(ZenohError::open)?;
         let locators = session.info().locators().await.iter().map(ToString::to_string).collect();
         let runtime = tokio::runtime::Handle::current();
+        let publishers = Publishers::start(calls.service(), &session, &runtime);
         let ingest = Arc::new(IngestContext::new(calls));
         let in_flight = Arc::new(AtomicUsize::new(0));
         let mut me = Self {
@@ -71,6 +75,7 @@ impl ZenohTransport {
             workers: Vec::new(),
             in_flight,
             ingest,
+            publishers,
         };
         let (sub, worker) = spawn_scan_worker(&me.session, me.ingest.clone()).await?;
         me.subscribers.push(sub);
@@ -95,25 +100,19 @@ impl ZenohTransport {
         &self.session
     }
 
-    /// Publishes one change of `map` on `bgkmap/<map>/updates`: `payload` is the encoded change
-    /// message (the one gRPC `WatchUpdates` streams; its encoding stays with that conversion
-    /// layer), the attachment the new map version as 8 little-endian bytes, so a subscriber can
-    /// order and gap-check changes without decoding them.
+    /// Publishes one change of `map` on `bgkmap/<map>/updates` as the transport does for every
+    /// change of its maps: `payload` is the encoded `MapUpdate`, the attachment the new map
+    /// version as 8 little-endian bytes, so a subscriber can order and gap-check changes
+    /// without decoding them.
     pub async fn publish_update(&self, map: &str, version: u64, payload: Vec<u8>) -> Result<(), ZenohError> {
-        crate::service::validate_map_name(map).map_err(|e| ZenohError::Config(e.to_string()))?;
-        self.session
-            .put(updates_key(map), payload)
-            .encoding(Encoding::APPLICATION_PROTOBUF)
-            .attachment(version.to_le_bytes().to_vec())
-            .await
-            .map_err(|e| ZenohError::Zenoh(format!("publishing on {}: {e}", updates_key(map))))
+        updates::put(&self.session, map, version, payload).await
     }
 
     /// Stops taking scans and queries, lets the workers hand what they received to the service,
     /// waits (bounded) for queries in flight, and closes the session. The service itself is
     /// drained by its owner afterwards.
     pub async fn shutdown(self) {
-        let Self { session, subscribers, queryables, workers, in_flight, .. } = self;
+        let Self { session, subscribers, queryables, workers, in_flight, publishers, .. } = self;
         for s in subscribers {
             let _ = s.undeclare().await;
         }
@@ -124,6 +123,8 @@ impl ZenohTransport {
         while in_flight.load(Ordering::Acquire) > 0 && tokio::time::Instant::now() < deadline {
             tokio::time::sleep(Duration::from_millis(10)).await;
         }
+        // The publishers end once the service has closed its feeds (the server does that first).
+        publishers.finish(DRAIN_PUBLISHERS).await;
         // Closing drops every callback, so the workers' channels disconnect once drained.
         let _ = session.close().await;
         let _ = tokio::task::spawn_blocking(move || {

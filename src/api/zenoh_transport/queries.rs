@@ -3,7 +3,8 @@
 //! payload) with the gRPC response messages, through the same [`ProtoCalls`] as gRPC; and
 //! `bgkmap/<map>/ingest` takes a `Scan` and replies `InsertScanResponse` once it is durable in
 //! the map's journal (`bgkmap/<map>/ingest?wait_applied`: once it is integrated), like gRPC
-//! `InsertScan`.
+//! `InsertScan`; `bgkmap/<map>/updates/since` takes a `WatchUpdatesRequest` and replies the
+//! `MapUpdate` catch-up (see [`super::updates`]).
 //!
 //! The map is the key's; a request's own `map` field may be empty or must name the same map.
 //! A failure is one `reply_err` whose payload is UTF-8 text `<GRPC_CODE>: <message>`, the code
@@ -51,10 +52,11 @@ enum Kind {
     Box,
     Rays,
     Ingest,
+    UpdatesSince,
 }
 
 impl Kind {
-    const ALL: [Kind; 4] = [Kind::Points, Kind::Box, Kind::Rays, Kind::Ingest];
+    const ALL: [Kind; 5] = [Kind::Points, Kind::Box, Kind::Rays, Kind::Ingest, Kind::UpdatesSince];
 
     fn key(self) -> &'static str {
         match self {
@@ -62,6 +64,7 @@ impl Kind {
             Kind::Box => "bgkmap/*/query/box",
             Kind::Rays => "bgkmap/*/query/rays",
             Kind::Ingest => "bgkmap/*/ingest",
+            Kind::UpdatesSince => "bgkmap/*/updates/since",
         }
     }
 }
@@ -85,8 +88,9 @@ macro_rules! map_request {
 map_request!(pb::QueryPointsRequest, "QueryPointsRequest");
 map_request!(pb::QueryBoxRequest, "QueryBoxRequest");
 map_request!(pb::CastRaysRequest, "CastRaysRequest");
+map_request!(pb::WatchUpdatesRequest, "WatchUpdatesRequest");
 
-/// Declares the four queryables (not complete: another process may serve other maps).
+/// Declares the five queryables (not complete: another process may serve other maps).
 pub async fn declare(
     session: &zenoh::Session,
     ctx: Arc<IngestContext>,
@@ -141,6 +145,7 @@ async fn call(kind: Kind, ctx: &IngestContext, query: &Query) -> Result<Vec<u8>,
     let key = query.key_expr().as_str();
     let parsed = match kind {
         Kind::Ingest => parse_key(key, "ingest"),
+        Kind::UpdatesSince => parse_key(key, "updates"),
         _ => parse_key(key, "query"),
     };
     let Some((map, _)) = parsed else {
@@ -153,6 +158,10 @@ async fn call(kind: Kind, ctx: &IngestContext, query: &Query) -> Result<Vec<u8>,
         Kind::Box => calls.query_box(request(map, &bytes)?).await?.encode_to_vec(),
         Kind::Rays => calls.cast_rays(request(map, &bytes)?).await?.encode_to_vec(),
         Kind::Ingest => ctx.ingest_query(map, &bytes, wait_applied(query)).await?,
+        Kind::UpdatesSince => {
+            let req: pb::WatchUpdatesRequest = request(map, &bytes)?;
+            crate::api::watch::changes_since(calls.service(), &req)?.encode_to_vec()
+        }
     })
 }
 
