@@ -180,9 +180,6 @@ impl Brick {
         table: &KernelTable,
     ) {
         assert!(pts.len() <= self.room(), "brick not folded in time");
-        if W == 4 && super::simd::add_points_w4(self, pts, block_origin, geo, table) {
-            return;
-        }
         for &(p, hit) in pts {
             self.add_point::<W, W3>(p, hit, block_origin, geo, table);
         }
