@@ -14,18 +14,20 @@
 //! [`super::window`]: fixed W³ windows per point in a per-bucket brick. Longer kernels take the
 //! stencil path below.
 //!
-//! # Where the time goes (sample data, 2-vCPU Xeon VM, release, other core idle)
+//! # Where the time goes (sample data, 2-vCPU VM, release, other core idle)
 //!
 //! Stencil path: ~190k in-ball pairs per scan at ~13–17 ns per pair (~2.4–3.4 ms), a flat
 //! profile of per-row bookkeeping (~45 instructions per pair). Window path: ~370k lanes per scan
 //! (64 per point, ~52% inside the ball) in 1.3–1.8 ms with the AVX2 lookups of [`super::simd`]
-//! adding straight into an `i32` brick. Whole-ingest profile (perf, `bench ingest`): the 64
-//! lookups + adds ~21% (two gathers per 8 lanes; gathers are slow on this CPU), brick folding
-//! ~20% (stalls on the 8 KiB `i64` delta blocks, which miss L1), point split and window setup
-//! ~13%, training data (voxel hash) ~25%, map update ~6%, zeroing / copying block buffers ~5%.
-//! The next steps: fold bricks straight into the map instead of per-scan delta blocks (the
-//! `ScanDelta` API is what the service journals and subtracts, so this is an API change), and
-//! evaluate only the row pairs inside the ball.
+//! adding straight into an `i32` brick. Whole-ingest profile (perf, `bench ingest`, AMD EPYC):
+//! the 64 lookups + adds ~26% (one 4-lane 64-bit gather per window row; gathers are slow on
+//! these CPUs), training data ~27% (voxel hash ~20%), brick folding ~16% (stalls on the 8 KiB
+//! `i64` delta blocks, which miss L1), bucketing and window placement ~14%, map update ~3%,
+//! zeroing block buffers ~3%. A voxel table with the key beside each slot (one probe, one
+//! line) measured slower: 16-byte slots make the table 4× larger. The next steps: fold bricks
+//! straight into the map instead of per-scan delta blocks (the `ScanDelta` API is what the
+//! service journals and subtracts, so this is an API change), fold only the brick rows that
+//! windows touched, and evaluate only the row pairs inside the ball.
 
 use super::evidence::{BlockEvidence, PairGeometry, RowMask, ScanDelta, split_point};
 use super::kernel::KernelTable;
