@@ -414,6 +414,12 @@ fn sim_insert(seq: u64, s: &bgkmap::sim::SimScan) -> pb::InsertScanRequest {
     }
 }
 
+/// gRPC `WatchUpdates` of map `m` since `version`.
+async fn grpc_watch(client: &mut Client, version: u64) -> tonic::Streaming<pb::MapUpdate> {
+    let req = pb::WatchUpdatesRequest { map: "m".into(), since_version: Some(version), ..Default::default() };
+    client.watch_updates(req).await.unwrap().into_inner()
+}
+
 fn since(version: u64) -> Vec<u8> {
     pb::WatchUpdatesRequest { since_version: Some(version), ..Default::default() }.encode_to_vec()
 }
@@ -428,16 +434,8 @@ async fn a_late_zenoh_subscriber_since_n_ends_with_the_same_blocks_as_an_early_o
     let early = early_peer.declare_subscriber("bgkmap/m/updates").await.unwrap();
     // Created after the transport started: followed from version 0.
     create_map(&mut client, "m").await;
-    let mut grpc_watch = client
-        .watch_updates(pb::WatchUpdatesRequest {
-            map: "m".into(),
-            since_version: Some(0),
-            ..Default::default()
-        })
-        .await
-        .unwrap()
-        .into_inner();
-    assert_eq!(grpc_watch.message().await.unwrap().unwrap().kind, pb::UpdateKind::CatchUp as i32);
+    let mut grpc_early = grpc_watch(&mut client, 0).await;
+    assert_eq!(grpc_early.message().await.unwrap().unwrap().kind, pb::UpdateKind::CatchUp as i32);
 
     let (_, scans) = simulate(0, 8, &Lidar::default());
     let mut early_blocks = BTreeSet::new();
@@ -448,7 +446,7 @@ async fn a_late_zenoh_subscriber_since_n_ends_with_the_same_blocks_as_an_early_o
         let u = next_update(&early).await;
         assert_eq!((u.kind, u.from_version, u.version), (pb::UpdateKind::Live as i32, seq - 1, seq));
         // The same message gRPC WatchUpdates streams.
-        assert_eq!(u, grpc_watch.message().await.unwrap().unwrap(), "zenoh and gRPC differ at {seq}");
+        assert_eq!(u, grpc_early.message().await.unwrap().unwrap(), "zenoh and gRPC differ at {seq}");
         assert!(!u.block.is_empty() && u.block_edge == 8 && u.resolution == 0.1);
         assert_eq!(u.poses.iter().map(|p| p.seq).collect::<Vec<_>>(), vec![seq]);
         early_blocks.extend(block_set(&u));
@@ -469,15 +467,7 @@ async fn a_late_zenoh_subscriber_since_n_ends_with_the_same_blocks_as_an_early_o
         (pb::UpdateKind::CatchUp as i32, 3, 8)
     );
     assert_eq!(catch_up.poses.iter().map(|p| p.seq).collect::<Vec<_>>(), vec![4, 5, 6, 7, 8]);
-    let mut grpc_late = client
-        .watch_updates(pb::WatchUpdatesRequest {
-            map: "m".into(),
-            since_version: Some(3),
-            ..Default::default()
-        })
-        .await
-        .unwrap()
-        .into_inner();
+    let mut grpc_late = grpc_watch(&mut client, 3).await;
     assert_eq!(catch_up, grpc_late.message().await.unwrap().unwrap(), "the catch-up gRPC sends");
     let mut late_blocks = known_at_3;
     late_blocks.extend(block_set(&catch_up));
