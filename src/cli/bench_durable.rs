@@ -39,6 +39,9 @@ pub struct DurableBenchArgs {
     /// Where to create the (temporary) data directory.
     #[arg(long, default_value = ".")]
     pub dir: PathBuf,
+    /// Integration threads of the server (`threads_per_scan`: batches one scan per thread).
+    #[arg(long, default_value_t = 1)]
+    pub threads: usize,
     /// Print one JSON object.
     #[arg(long)]
     pub json: bool,
@@ -128,6 +131,7 @@ pub fn run(a: DurableBenchArgs) -> Result<()> {
         // Room for every scan of a run, so acknowledgements measure the journal, not the
         // integration backlog (reported separately as the integrated rate).
         max_unapplied_scans: 8 * a.scans,
+        threads_per_scan: a.threads.max(1),
         ..Default::default()
     };
     let ingest = runtime()?.block_on(async {

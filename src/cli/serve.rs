@@ -35,7 +35,7 @@ pub struct ServerConfig {
     pub journal_retention: String,
     /// Milliseconds before writing is retried after a failed write. Default 1000.
     pub write_retry_ms: u64,
-    /// Threads per scan integration. Default 1.
+    /// Threads integrating scans (a batch one scan per thread, a lone scan split). Default 1.
     pub threads_per_scan: usize,
     /// Most points per scan. Default 4194304.
     pub max_points: usize,

@@ -55,7 +55,9 @@ pub struct ServiceConfig {
     /// Journaled scans per map waiting to be integrated before submissions are refused as
     /// busy. Default 256.
     pub max_unapplied_scans: usize,
-    /// Threads per scan integration (results are bit-identical for any count). Default 1.
+    /// Threads integrating each map's scans: a batch of several scans is spread over them one
+    /// scan per thread, a lone scan is split across them (results are bit-identical for any
+    /// count). Default 1.
     pub threads_per_scan: usize,
     /// Limits on one scan.
     pub limits: ScanLimits,

@@ -11,7 +11,7 @@ use super::file::{Commit, MapFile};
 use super::journal::{JournalEntry, JournalIndex, ScanStatus};
 use super::lock::MapLock;
 use super::reader::{CorruptBlock, bad_record, missing_record};
-use crate::core::{EvidenceMap, Integrator, RawScan};
+use crate::core::{EvidenceMap, Integrator, RawScan, for_each_delta_parallel};
 use std::path::Path;
 
 /// How long raw scans stay in the journal once their evidence is applied.
@@ -101,6 +101,8 @@ pub struct DurableMap {
     pub(super) journal: JournalIndex,
     pub(super) version: u64,
     pub(super) integrator: Integrator,
+    /// One integrator per thread for batches of scans (made on first use).
+    workers: Vec<Integrator>,
     pub(super) threads: usize,
     pub(super) retention: Retention,
     /// Bytes of raw scans stored (journaled and applied rows).
@@ -142,6 +144,7 @@ impl DurableMap {
             journal: opened.journal,
             version: opened.version,
             integrator: Integrator::new(params),
+            workers: Vec::new(),
             threads: threads.max(1),
             retention,
             stored_bytes,
@@ -218,13 +221,23 @@ impl DurableMap {
             return Err(super::reader::corrupt_block(&path, c.key, c.reason.clone()));
         }
         let mut edit = self.map.edit();
-        for p in scans {
-            let delta = p
-                .scan
-                .delta(&mut self.integrator, self.threads)
-                .map_err(|e| bad_record(&path, &p.source, p.seq, e))?;
-            edit.add_delta(&delta, 1);
-            self.integrator.recycle(delta);
+        if self.threads > 1 && scans.len() > 1 {
+            // Several scans: one per thread at a time (integer evidence: any order, same bits).
+            let params = *self.map.params();
+            self.workers.resize_with(self.threads, || Integrator::new(params));
+            let delta = |integ: &mut Integrator, p: &Pending| {
+                p.scan.delta(integ, 1).map_err(|e| bad_record(&path, &p.source, p.seq, e))
+            };
+            for_each_delta_parallel(&mut self.workers, scans, delta, |d| edit.add_delta(d, 1))?;
+        } else {
+            for p in scans {
+                let delta = p
+                    .scan
+                    .delta(&mut self.integrator, self.threads)
+                    .map_err(|e| bad_record(&path, &p.source, p.seq, e))?;
+                edit.add_delta(&delta, 1);
+                self.integrator.recycle(delta);
+            }
         }
         let blocks = edit.finish();
         let applied =

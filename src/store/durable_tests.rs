@@ -40,10 +40,21 @@ fn clean(scans: &[RawScan]) -> EvidenceMap {
 
 /// Creates a map file and journals + applies `scans` as (source, seq).
 fn durable(dir: &std::path::Path, name: &str, scans: &[(&str, u64, RawScan)]) -> DurableMap {
+    let (mut dm, pending) = journaled(dir, name, scans, 1);
+    dm.apply(&pending).unwrap();
+    dm
+}
+
+/// Creates a map file (opened with `threads`) and journals `scans` as (source, seq).
+fn journaled(
+    dir: &std::path::Path,
+    name: &str,
+    scans: &[(&str, u64, RawScan)],
+    threads: usize,
+) -> (DurableMap, Vec<Pending>) {
     let path = dir.join(name);
     MapFile::create(&path, &MapParams::default()).unwrap().close().unwrap();
-    let rec = DurableMap::open(&path, 1, Retention::All).unwrap();
-    let mut dm = rec.map;
+    let rec = DurableMap::open(&path, threads, Retention::All).unwrap();
     let mut file = MapFile::connect(&path).unwrap();
     let news: Vec<NewScan> = scans.iter().map(|(s, q, r)| new_scan(s, *q, r.clone())).collect();
     let entries = file.journal(&news).unwrap();
@@ -52,8 +63,33 @@ fn durable(dir: &std::path::Path, name: &str, scans: &[(&str, u64, RawScan)]) ->
         .zip(entries)
         .map(|(n, e)| Pending { source: n.source, seq: n.seq, entry: e.unwrap(), scan: n.scan })
         .collect();
-    dm.apply(&pending).unwrap();
-    dm
+    (rec.map, pending)
+}
+
+#[test]
+fn a_batch_on_several_threads_gives_the_bits_of_one_and_a_bad_scan_changes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let raws: Vec<RawScan> = (0..7).map(scan).collect();
+    let named: Vec<(&str, u64, RawScan)> =
+        raws.iter().enumerate().map(|(i, r)| ("a", i as u64 + 1, r.clone())).collect();
+    for threads in [2, 3] {
+        let name = format!("t{threads}.bgkmap");
+        let (mut dm, pending) = journaled(dir.path(), &name, &named, threads);
+        let change = dm.apply(&pending).unwrap();
+        assert_eq!((change.scans, change.version), (7, 7));
+        assert_eq!(cells(dm.map()), cells(&clean(&raws)), "{threads} threads");
+        drop(dm);
+        assert_eq!(cells(&load_map(&dir.path().join(&name)).unwrap()), cells(&clean(&raws)), "as stored");
+    }
+    // A scan whose pose cannot be used, in the middle of a batch: the batch fails, nothing moves.
+    let mut bad = named.clone();
+    bad[3].2.world_from_sensor.rotation_wxyz = [f64::NAN, 0.0, 0.0, 0.0];
+    let (mut dm, pending) = journaled(dir.path(), "bad.bgkmap", &bad, 2);
+    let before = cells(dm.map());
+    let err = dm.apply(&pending).unwrap_err().to_string();
+    assert!(err.contains("a") && err.contains('4'), "{err}");
+    assert_eq!(cells(dm.map()), before);
+    assert_eq!(dm.version(), 0);
 }
 
 #[test]
