@@ -111,10 +111,10 @@ impl KernelTable {
         self.values[j] + ((self.slopes[j] * frac + (1 << (COORD_SHIFT - 1))) >> COORD_SHIFT)
     }
 
-    /// The table's values and slopes (index `N` is the cut-off, 0; values have one more zero
-    /// at `N + 1`, so `values[j + 1] − values[j] = slopes[j]` for every `j ≤ N`).
-    pub fn lanes(&self) -> (&[i32; TABLE_INTERVALS + 2], &[i32; TABLE_INTERVALS + 1]) {
-        (&self.values, &self.slopes)
+    /// The table's values for lane-wise reads (index `N` is the cut-off, 0, and one more zero
+    /// follows at `N + 1`): `values[j + 1] − values[j]` is the slope of interval `j ≤ N`.
+    pub fn values(&self) -> &[i32; TABLE_INTERVALS + 2] {
+        &self.values
     }
 
     /// The clamped lane coordinate of a squared distance `d2_cells` (≥ 0): `round(d2·scale)`

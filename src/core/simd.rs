@@ -73,7 +73,7 @@ mod x86 {
     impl<'a> Window<'a> {
         #[target_feature(enable = "avx2")]
         fn new(axis: &'a [[f64; 4]; 3], scale: f64, table: &'a KernelTable) -> Self {
-            let (values, _) = table.lanes();
+            let values = table.values();
             // SAFETY: `axis[0]` holds 4 f64.
             let dx = unsafe { _mm256_loadu_pd(axis[0].as_ptr()) };
             Self { axis, dx, scale: _mm256_set1_pd(scale), values }

@@ -105,6 +105,8 @@ impl ZenohTransport {
     /// version as 8 little-endian bytes, so a subscriber can order and gap-check changes
     /// without decoding them.
     pub async fn publish_update(&self, map: &str, version: u64, payload: Vec<u8>) -> Result<(), ZenohError> {
+        // The transport's own maps are valid names already; a caller's may not be.
+        crate::service::validate_map_name(map).map_err(|e| ZenohError::Config(e.to_string()))?;
         updates::put(&self.session, map, version, payload).await
     }
 

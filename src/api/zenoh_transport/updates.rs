@@ -24,24 +24,24 @@ use prost::Message;
 use std::sync::{Arc, Mutex, PoisonError};
 use zenoh::bytes::Encoding;
 
-/// Puts one change of `map` on its updates key.
+/// Puts one change of `map` (a valid map name) on its updates key.
 pub(super) async fn put(
     session: &zenoh::Session,
     map: &str,
     version: u64,
     payload: Vec<u8>,
 ) -> Result<(), ZenohError> {
-    crate::service::validate_map_name(map).map_err(|e| ZenohError::Config(e.to_string()))?;
+    let key = updates_key(map);
     session
-        .put(updates_key(map), payload)
+        .put(&key, payload)
         .encoding(Encoding::APPLICATION_PROTOBUF)
         .attachment(version.to_le_bytes().to_vec())
         .await
-        .map_err(|e| ZenohError::Zenoh(format!("publishing on {}: {e}", updates_key(map))))
+        .map_err(|e| ZenohError::Zenoh(format!("publishing on {key}: {e}")))
 }
 
 /// The publishing tasks of all maps.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub(super) struct Publishers {
     tasks: Mutex<Option<Vec<tokio::task::JoinHandle<()>>>>,
 }
