@@ -242,7 +242,7 @@ fn export_cells(
     for (i, key) in keys.iter().enumerate() {
         if let Some(block) = map.block(*key) {
             for j in 0..BLOCK_CELLS {
-                if block.a[j] != 0 || block.b[j] != 0 {
+                if !block.get(j).is_empty() {
                     let cell = key.cell(j);
                     if inside(cell) {
                         slab.push(cell);

@@ -33,6 +33,9 @@ pub struct QueryBenchArgs {
     /// Threads integrating the map (building it is not measured).
     #[arg(long, default_value_t = 2)]
     pub build_threads: usize,
+    /// Measure the core's queries only (no server, no network transports).
+    #[arg(long)]
+    pub in_process_only: bool,
     /// Print one JSON object.
     #[arg(long)]
     pub json: bool,
@@ -148,6 +151,9 @@ pub fn run_bench(a: &QueryBenchArgs) -> Result<Value> {
     runtime()?.block_on(async {
         v["in_process"] = measure(&mut InProcess::new(&map), &w).await?;
         drop(map);
+        if a.in_process_only {
+            return Ok(());
+        }
         let running = start(&config).await?;
         let r = measure_all(running.grpc_addr, running.http_addr, &w, &sim, &mut v).await;
         running.shutdown().await?;
@@ -181,7 +187,7 @@ fn print_summary(v: &Value) {
         "query bench: map of {} scans of the simulated 64-beam drive, {} blocks, {} cells with evidence",
         v["scans"], v["blocks"], v["cells_with_evidence"]
     );
-    for t in ["in_process", "grpc", "http"] {
+    for t in ["in_process", "grpc", "http"].into_iter().filter(|t| !v[*t].is_null()) {
         println!(
             "  {t}: points ({} per call) {:.2} M/s; single point p50 {:.0} µs p99 {:.0} µs; boxes 1 m {:.3} ms, \
              10 m {:.2} ms ({:.0} cells); rays ({} per call) 8 m {:.3} M/s, 30 m {:.3} M/s",
@@ -196,6 +202,9 @@ fn print_summary(v: &Value) {
             f(&format!("/{t}/rays_8m_per_s")) / 1e6,
             f(&format!("/{t}/rays_30m_per_s")) / 1e6,
         );
+    }
+    if v["grpc"].is_null() {
+        return;
     }
     println!(
         "  gRPC single point while ingesting ({} scans at {:.1} scans/s): p50 {:.0} µs, p99 {:.0} µs",

@@ -101,7 +101,7 @@ fn rows(
         for key in map.block_keys_sorted() {
             let Some(block) = map.block(key) else { continue };
             for i in 0..crate::core::key::BLOCK_CELLS {
-                if block.a[i] != 0 || block.b[i] != 0 {
+                if !block.get(i).is_empty() {
                     let cell = key.cell(i);
                     let e = map.estimate(cell, th);
                     rows.push(Row { cell, probability: e.probability, variance: e.variance, state: e.state });

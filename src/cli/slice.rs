@@ -80,7 +80,7 @@ pub fn slice(map: &EvidenceMap, z_m: f64, xy_box: Option<([f64; 2], [f64; 2])>) 
         let Some(block) = map.block(key) else { continue };
         for i in 0..BLOCK_CELLS {
             let cell = key.cell(i);
-            if cell.z != z_key || (block.a[i] == 0 && block.b[i] == 0) {
+            if cell.z != z_key || block.get(i).is_empty() {
                 continue;
             }
             let c = cell.centre(res);

@@ -36,7 +36,7 @@ impl<'a> MapEdit<'a> {
     /// Adds (`sign` ≥ 0) or subtracts (`sign` < 0) a scan's evidence.
     pub fn add_delta(&mut self, delta: &ScanDelta, sign: i64) {
         for (key, d, rows) in delta.iter() {
-            self.block_mut(key).add_rows(d, sign, rows);
+            self.block_mut(key).add_delta(d, sign, rows);
         }
     }
 

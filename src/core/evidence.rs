@@ -11,13 +11,68 @@
 
 use super::kernel::{COORD_SHIFT, KernelTable, TABLE_INTERVALS};
 use super::key::{BLOCK_CELLS, BLOCK_EDGE, BlockKey, CellKey};
+use super::map::probability_variance;
+use super::params::{MapParams, Thresholds};
 use super::training::TrainingSet;
 
-/// Evidence of one block: occupied mass `a` and free mass `b` per cell (fixed-point, unit kernel).
+/// The raw evidence of one cell: occupied mass `a` and free mass `b` (fixed-point, unit kernel).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[repr(C)]
+pub struct Evidence {
+    pub a: i64,
+    pub b: i64,
+}
+
+impl Evidence {
+    pub fn is_empty(self) -> bool {
+        self.a == 0 && self.b == 0
+    }
+}
+
+/// Evidence of one map block, a cell's two sums side by side: a reader of one cell touches one
+/// cache line (the block is 64-byte aligned, a cell 16 bytes), which is what point and ray
+/// queries over maps far larger than the caches wait on.
 #[derive(Clone, PartialEq, Eq)]
+#[repr(C, align(64))]
 pub struct BlockEvidence {
-    pub a: [i64; BLOCK_CELLS],
-    pub b: [i64; BLOCK_CELLS],
+    cells: [Evidence; BLOCK_CELLS],
+}
+
+/// The largest probability and variance over all cells of a block (cells without evidence
+/// count with the prior's). Ray walks use it to pass whole blocks where no cell can stop them
+/// without reading any cell.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BlockSummary {
+    /// `+∞` when some cell's probability or variance is not a number.
+    pub max_probability: f64,
+    pub max_variance: f64,
+}
+
+impl BlockSummary {
+    /// The summary of `block` under `params` (the map's).
+    pub fn of(block: &BlockEvidence, params: &MapParams) -> Self {
+        let (mut max_p, mut max_var) = (f64::NEG_INFINITY, f64::NEG_INFINITY);
+        for &e in &block.cells {
+            let (p, var) = probability_variance(e, params);
+            if p.is_nan() || var.is_nan() {
+                (max_p, max_var) = (f64::INFINITY, f64::INFINITY);
+                break;
+            }
+            max_p = max_p.max(p);
+            max_var = max_var.max(var);
+        }
+        Self { max_probability: max_p, max_variance: max_var }
+    }
+
+    /// True when no cell of the block can be occupied under `th` (none has p > `p_occ`).
+    pub fn none_occupied(&self, th: &Thresholds) -> bool {
+        self.max_probability <= th.p_occ
+    }
+
+    /// True when every cell of the block is free under `th`.
+    pub fn all_free(&self, th: &Thresholds) -> bool {
+        self.max_probability < th.p_free && self.max_variance < th.var_max
+    }
 }
 
 impl std::fmt::Debug for BlockEvidence {
@@ -28,7 +83,106 @@ impl std::fmt::Debug for BlockEvidence {
 
 impl BlockEvidence {
     pub fn zeroed() -> Box<Self> {
+        Box::new(Self { cells: [Evidence::default(); BLOCK_CELLS] })
+    }
+
+    /// Cell `i` (local index, [`CellKey::index_in_block`]).
+    #[inline]
+    pub fn get(&self, i: usize) -> Evidence {
+        self.cells[i]
+    }
+
+    /// A reference to cell `i`, e.g. to prefetch it.
+    #[inline]
+    pub fn cell(&self, i: usize) -> &Evidence {
+        &self.cells[i]
+    }
+
+    pub fn set(&mut self, i: usize, e: Evidence) {
+        self.cells[i] = e;
+    }
+
+    /// Every cell, by local index.
+    pub fn cells(&self) -> &[Evidence; BLOCK_CELLS] {
+        &self.cells
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.cells.iter().all(|e| e.is_empty())
+    }
+
+    pub fn cells_with_evidence(&self) -> usize {
+        self.cells.iter().filter(|e| !e.is_empty()).count()
+    }
+
+    /// `self += d` (`sign` ≥ 0) or `self -= d` (`sign` < 0) on the rows of `rows` (see
+    /// [`ScanDelta::rows`]): rows whose bit is clear must be zero in `d`.
+    pub fn add_delta(&mut self, d: &DeltaBlock, sign: i64, rows: RowMask) {
+        let add = |dst: &mut [Evidence], a: &[i64], b: &[i64]| {
+            let cells = dst.iter_mut().zip(a.iter().zip(b));
+            if sign >= 0 {
+                cells.for_each(|(e, (a, b))| {
+                    e.a += a;
+                    e.b += b;
+                });
+            } else {
+                cells.for_each(|(e, (a, b))| {
+                    e.a -= a;
+                    e.b -= b;
+                });
+            }
+        };
+        if rows == ALL_ROWS {
+            return add(&mut self.cells, &d.a, &d.b);
+        }
+        let mut m = rows[0] | rows[1];
+        while m != 0 {
+            let r = m.trailing_zeros() as usize * ROW;
+            m &= m - 1;
+            add(&mut self.cells[r..r + ROW], &d.a[r..r + ROW], &d.b[r..r + ROW]);
+        }
+    }
+
+    /// `self += other` (`sign` ≥ 0) or `self -= other` (`sign` < 0).
+    pub fn add_scaled(&mut self, other: &BlockEvidence, sign: i64) {
+        // Plain loops (no multiply) so the compiler vectorises them.
+        let pairs = self.cells.iter_mut().zip(&other.cells);
+        if sign >= 0 {
+            pairs.for_each(|(x, y)| {
+                x.a += y.a;
+                x.b += y.b;
+            });
+        } else {
+            pairs.for_each(|(x, y)| {
+                x.a -= y.a;
+                x.b -= y.b;
+            });
+        }
+    }
+}
+
+/// One block of a scan's evidence as the scatter writes it: all `a` sums, then all `b` sums, so
+/// a window adds into one contiguous row of 8 cells per label.
+#[derive(Clone, PartialEq, Eq)]
+pub struct DeltaBlock {
+    pub a: [i64; BLOCK_CELLS],
+    pub b: [i64; BLOCK_CELLS],
+}
+
+impl std::fmt::Debug for DeltaBlock {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "DeltaBlock {{ cells with evidence: {} }}", self.cells_with_evidence())
+    }
+}
+
+impl DeltaBlock {
+    pub fn zeroed() -> Box<Self> {
         Box::new(Self { a: [0; BLOCK_CELLS], b: [0; BLOCK_CELLS] })
+    }
+
+    #[inline]
+    pub fn get(&self, i: usize) -> Evidence {
+        Evidence { a: self.a[i], b: self.b[i] }
     }
 
     pub fn is_empty(&self) -> bool {
@@ -39,24 +193,15 @@ impl BlockEvidence {
         self.a.iter().zip(&self.b).filter(|(a, b)| **a != 0 || **b != 0).count()
     }
 
-    /// `self += other` (`sign` ≥ 0) or `self -= other` (`sign` < 0) on the rows of `rows`
-    /// (see [`ScanDelta::rows`]): rows whose bit is clear must be zero in `other`.
-    pub fn add_rows(&mut self, other: &BlockEvidence, sign: i64, rows: RowMask) {
-        if rows == ALL_ROWS {
-            return self.add_scaled(other, sign);
-        }
+    /// `self += other` on the rows of `rows` (rows whose bit is clear must be zero in `other`).
+    pub fn add_rows(&mut self, other: &DeltaBlock, rows: RowMask) {
         for (label, (dst, src)) in [(&mut self.a, &other.a), (&mut self.b, &other.b)].into_iter().enumerate()
         {
             let mut m = rows[label];
             while m != 0 {
                 let r = m.trailing_zeros() as usize * ROW;
                 m &= m - 1;
-                let (d, s) = (&mut dst[r..r + ROW], &src[r..r + ROW]);
-                if sign >= 0 {
-                    d.iter_mut().zip(s).for_each(|(x, y)| *x += y);
-                } else {
-                    d.iter_mut().zip(s).for_each(|(x, y)| *x -= y);
-                }
+                dst[r..r + ROW].iter_mut().zip(&src[r..r + ROW]).for_each(|(x, y)| *x += y);
             }
         }
     }
@@ -77,17 +222,6 @@ impl BlockEvidence {
             }
         }
     }
-
-    /// `self += other` (`sign` ≥ 0) or `self -= other` (`sign` < 0).
-    pub fn add_scaled(&mut self, other: &BlockEvidence, sign: i64) {
-        // Two plain loops (no multiply) so the compiler vectorises them.
-        let pairs = self.a.iter_mut().zip(&other.a).chain(self.b.iter_mut().zip(&other.b));
-        if sign >= 0 {
-            pairs.for_each(|(x, y)| *x += y);
-        } else {
-            pairs.for_each(|(x, y)| *x -= y);
-        }
-    }
 }
 
 /// Cells per block row (one x run at fixed y, z).
@@ -102,7 +236,7 @@ const _: () = assert!(BLOCK_CELLS / ROW == 64, "a row mask is one bit per row of
 /// The evidence one scan adds: blocks sorted by key.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct ScanDelta {
-    pub blocks: Vec<(BlockKey, Box<BlockEvidence>)>,
+    pub blocks: Vec<(BlockKey, Box<DeltaBlock>)>,
     /// Per block, the rows that may hold evidence (all others are zero), so adding a sparse
     /// delta touches only those; empty means every row.
     pub rows: Vec<RowMask>,
@@ -115,7 +249,7 @@ impl ScanDelta {
     }
 
     /// Blocks with their row masks.
-    pub fn iter(&self) -> impl Iterator<Item = (BlockKey, &BlockEvidence, RowMask)> {
+    pub fn iter(&self) -> impl Iterator<Item = (BlockKey, &DeltaBlock, RowMask)> {
         self.blocks.iter().enumerate().map(|(i, (k, b))| (*k, &**b, self.rows_of(i)))
     }
 
@@ -126,7 +260,7 @@ impl ScanDelta {
 
     /// Sums several deltas (e.g. per-thread partial results) into one, sorted by block key.
     pub fn sum(parts: Vec<ScanDelta>) -> ScanDelta {
-        let mut all: Vec<(BlockKey, Box<BlockEvidence>, RowMask)> = Vec::new();
+        let mut all: Vec<(BlockKey, Box<DeltaBlock>, RowMask)> = Vec::new();
         for d in parts {
             let rows: Vec<RowMask> = (0..d.blocks.len()).map(|i| d.rows_of(i)).collect();
             all.extend(d.blocks.into_iter().zip(rows).map(|((k, b), r)| (k, b, r)));
@@ -136,7 +270,7 @@ impl ScanDelta {
         for (k, b, r) in all {
             match (out.blocks.last_mut(), out.rows.last_mut()) {
                 (Some((lk, lb)), Some(lr)) if *lk == k => {
-                    lb.add_rows(&b, 1, r);
+                    lb.add_rows(&b, r);
                     *lr = [lr[0] | r[0], lr[1] | r[1]];
                 }
                 _ => {

@@ -6,13 +6,13 @@
 //! `α = α0 + σ0·A/2^F`, `β = β0 + σ0·B/2^F` (Eq. 1, 2, 7, 9). Cells that never received evidence
 //! (both sums zero) answer with the prior (p = 0.5).
 
-use super::evidence::{BlockEvidence, PairGeometry, ScanDelta, Scatter};
+use super::evidence::{BlockEvidence, BlockSummary, PairGeometry, ScanDelta, Scatter};
 use super::kernel::{FIXED_ONE, KernelTable};
 use super::key::{BlockKey, CellKey};
 use super::params::{MapParams, Thresholds};
 use super::training::{TrainingBuilder, TrainingSet};
 use rustc_hash::FxHashMap;
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 
 /// Free / occupied / unknown under a set of thresholds (Eq. 9).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
@@ -32,18 +32,7 @@ impl CellState {
     }
 }
 
-/// The raw evidence of one cell.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub struct Evidence {
-    pub a: i64,
-    pub b: i64,
-}
-
-impl Evidence {
-    pub fn is_empty(self) -> bool {
-        self.a == 0 && self.b == 0
-    }
-}
+pub use super::evidence::Evidence;
 
 /// What a reader gets for one cell.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -57,10 +46,7 @@ pub struct CellEstimate {
 impl CellEstimate {
     /// Eq. 1, 2 and 9 from the stored sums.
     pub fn from_evidence(e: Evidence, params: &MapParams, th: &Thresholds) -> Self {
-        let (alpha, beta) = alpha_beta(e, params);
-        let w = alpha + beta;
-        let probability = alpha / w;
-        let variance = alpha * beta / (w * w * (w + 1.0));
+        let (probability, variance) = probability_variance(e, params);
         let state = if probability < th.p_free && variance < th.var_max {
             CellState::Free
         } else if probability > th.p_occ && variance < th.var_max {
@@ -83,6 +69,15 @@ impl CellEstimate {
     }
 }
 
+/// Eq. 1 and 2: the Beta posterior's mean and variance (the one place they are computed, so a
+/// block summary and a cell estimate agree to the bit).
+#[inline]
+pub(crate) fn probability_variance(e: Evidence, params: &MapParams) -> (f64, f64) {
+    let (alpha, beta) = alpha_beta(e, params);
+    let w = alpha + beta;
+    (alpha / w, alpha * beta / (w * w * (w + 1.0)))
+}
+
 fn alpha_beta(e: Evidence, params: &MapParams) -> (f64, f64) {
     (
         params.prior_a + params.sf2 * (e.a as f64 / FIXED_ONE),
@@ -97,7 +92,32 @@ fn alpha_beta(e: Evidence, params: &MapParams) -> (f64, f64) {
 #[derive(Debug, Clone)]
 pub struct EvidenceMap {
     params: MapParams,
-    blocks: FxHashMap<BlockKey, Arc<BlockEvidence>>,
+    blocks: FxHashMap<BlockKey, Slot>,
+}
+
+/// A map block and its [`BlockSummary`], computed by the first reader that asks and dropped by
+/// every change. It lives beside the block's pointer, so a ray reads it with the hash lookup
+/// it makes anyway.
+#[derive(Debug, Clone)]
+struct Slot {
+    block: Arc<BlockEvidence>,
+    summary: OnceLock<BlockSummary>,
+}
+
+impl Slot {
+    fn new(block: Arc<BlockEvidence>) -> Self {
+        Self { block, summary: OnceLock::new() }
+    }
+
+    fn zeroed() -> Self {
+        Self::new(Arc::from(BlockEvidence::zeroed()))
+    }
+
+    /// The block, to change it (copied first if a snapshot shares it).
+    fn block_mut(&mut self) -> &mut BlockEvidence {
+        self.summary.take();
+        Arc::make_mut(&mut self.block)
+    }
 }
 
 impl EvidenceMap {
@@ -115,21 +135,28 @@ impl EvidenceMap {
     }
 
     pub fn cells_with_evidence(&self) -> usize {
-        self.blocks.values().map(|b| b.cells_with_evidence()).sum()
+        self.blocks.values().map(|s| s.block.cells_with_evidence()).sum()
     }
 
     pub fn block(&self, key: BlockKey) -> Option<&BlockEvidence> {
-        self.blocks.get(&key).map(|b| &**b)
+        self.blocks.get(&key).map(|s| &*s.block)
+    }
+
+    /// A block with its [`BlockSummary`] (computed now if no reader asked since it changed).
+    pub fn block_with_summary(&self, key: BlockKey) -> Option<(&BlockEvidence, BlockSummary)> {
+        self.blocks
+            .get(&key)
+            .map(|s| (&*s.block, *s.summary.get_or_init(|| BlockSummary::of(&s.block, &self.params))))
     }
 
     /// A shared handle to one block (cheap: a reference count).
     pub fn block_arc(&self, key: BlockKey) -> Option<Arc<BlockEvidence>> {
-        self.blocks.get(&key).cloned()
+        self.blocks.get(&key).map(|s| s.block.clone())
     }
 
     /// Blocks in hash order (callers that emit anything sort first; see [`Self::block_keys_sorted`]).
     pub fn blocks_unsorted(&self) -> impl Iterator<Item = (&BlockKey, &BlockEvidence)> {
-        self.blocks.iter().map(|(k, b)| (k, &**b))
+        self.blocks.iter().map(|(k, s)| (k, &*s.block))
     }
 
     pub fn block_keys_sorted(&self) -> Vec<BlockKey> {
@@ -140,10 +167,7 @@ impl EvidenceMap {
 
     pub fn evidence(&self, cell: CellKey) -> Evidence {
         match self.blocks.get(&cell.block()) {
-            Some(b) => {
-                let i = cell.index_in_block();
-                Evidence { a: b.a[i], b: b.b[i] }
-            }
+            Some(s) => s.block.get(cell.index_in_block()),
             None => Evidence::default(),
         }
     }
@@ -156,9 +180,8 @@ impl EvidenceMap {
     /// evidence are dropped, so removing a scan restores the map exactly.
     pub fn apply(&mut self, delta: &ScanDelta, sign: i64) {
         for (key, d, rows) in delta.iter() {
-            let shared = self.blocks.entry(key).or_insert_with(|| Arc::from(BlockEvidence::zeroed()));
-            let blk = Arc::make_mut(shared);
-            blk.add_rows(d, sign, rows);
+            let blk = self.blocks.entry(key).or_insert_with(Slot::zeroed).block_mut();
+            blk.add_delta(d, sign, rows);
             if sign < 0 && blk.is_empty() {
                 self.blocks.remove(&key);
             }
@@ -172,10 +195,10 @@ impl EvidenceMap {
             .iter()
             .map(|(key, d, rows)| {
                 let mut b = match self.blocks.get(&key) {
-                    Some(old) => Box::new((**old).clone()),
+                    Some(old) => Box::new((*old.block).clone()),
                     None => BlockEvidence::zeroed(),
                 };
-                b.add_rows(d, sign, rows);
+                b.add_delta(d, sign, rows);
                 (key, (!b.is_empty()).then(|| Arc::from(b)))
             })
             .collect()
@@ -185,7 +208,7 @@ impl EvidenceMap {
     pub fn set_blocks(&mut self, blocks: Vec<(BlockKey, Option<Arc<BlockEvidence>>)>) {
         for (key, b) in blocks {
             match b {
-                Some(b) => self.blocks.insert(key, b),
+                Some(b) => self.blocks.insert(key, Slot::new(b)),
                 None => self.blocks.remove(&key),
             };
         }
@@ -196,7 +219,7 @@ impl EvidenceMap {
         if block.is_empty() {
             self.blocks.remove(&key);
         } else {
-            self.blocks.insert(key, Arc::from(block));
+            self.blocks.insert(key, Slot::new(Arc::from(block)));
         }
     }
 
@@ -206,7 +229,7 @@ impl EvidenceMap {
         if block.is_empty() {
             self.blocks.remove(&key);
         } else {
-            self.blocks.insert(key, block);
+            self.blocks.insert(key, Slot::new(block));
         }
     }
 
@@ -217,8 +240,7 @@ impl EvidenceMap {
             return Err(diff);
         }
         for (key, b) in &other.blocks {
-            let shared = self.blocks.entry(*key).or_insert_with(|| Arc::from(BlockEvidence::zeroed()));
-            Arc::make_mut(shared).add_scaled(b, 1);
+            self.blocks.entry(*key).or_insert_with(Slot::zeroed).block_mut().add_scaled(&b.block, 1);
         }
         Ok(())
     }
@@ -466,7 +488,7 @@ mod tests {
         for (key, d) in &delta.blocks {
             let b = map.block(*key).unwrap();
             for i in 0..crate::core::key::BLOCK_CELLS {
-                assert_eq!((b.a[i], b.b[i]), (15 * d.a[i], 15 * d.b[i]));
+                assert_eq!((b.get(i).a, b.get(i).b), (15 * d.a[i], 15 * d.b[i]));
             }
         }
         for _ in 0..15 {

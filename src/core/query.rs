@@ -33,8 +33,8 @@ const POINT_BATCH: usize = 32;
 
 /// [`query_points`] without the answer vector: `f` gets each point's answer, in order.
 ///
-/// Points are processed in rounds of 32: keys, then block lookups, then the
-/// estimates. A cell without evidence answers the prior estimate computed once (the same bits
+/// Points are processed in rounds of 32: keys, then block lookups, then a prefetch of every
+/// cell, then the estimates (measured: faster than prefetching inside the lookup loop). A cell without evidence answers the prior estimate computed once (the same bits
 /// as [`CellEstimate::from_evidence`] of zero evidence).
 pub fn for_each_point(
     map: &EvidenceMap,
@@ -53,13 +53,15 @@ pub fn for_each_point(
         for (b, c) in blocks.iter_mut().zip(&cells[..chunk.len()]) {
             *b = c.and_then(|c| map.block(c.block()));
         }
+        for (b, c) in blocks.iter().zip(&cells[..chunk.len()]) {
+            if let (Some(b), Some(c)) = (b, c) {
+                super::simd::prefetch(b.cell(c.index_in_block()));
+            }
+        }
         for (cell, block) in cells.iter().zip(&blocks).take(chunk.len()) {
             f(cell.map(|cell| {
                 let e = match block {
-                    Some(b) => {
-                        let i = cell.index_in_block();
-                        Evidence { a: b.a[i], b: b.b[i] }
-                    }
+                    Some(b) => b.get(cell.index_in_block()),
                     None => Evidence::default(),
                 };
                 let estimate =
@@ -127,8 +129,8 @@ pub fn query_box(
     let mut cubes: std::collections::BTreeMap<CellKey, Evidence> = std::collections::BTreeMap::new();
     for key in blocks_in_box(map, lo, hi) {
         let Some(block) = map.block(key) else { continue };
-        for i in 0..BLOCK_CELLS {
-            let (a, b) = (block.a[i], block.b[i]);
+        for (i, e) in block.cells().iter().enumerate() {
+            let (a, b) = (e.a, e.b);
             let cell = key.cell(i);
             let inside = (lo.x..=hi.x).contains(&cell.x)
                 && (lo.y..=hi.y).contains(&cell.y)

@@ -29,7 +29,7 @@
 //! service journals and subtracts, so this is an API change), fold only the brick rows that
 //! windows touched, and evaluate only the row pairs inside the ball.
 
-use super::evidence::{BlockEvidence, PairGeometry, RowMask, ScanDelta, split_point};
+use super::evidence::{DeltaBlock, PairGeometry, RowMask, ScanDelta, split_point};
 use super::kernel::KernelTable;
 use super::key::{BLOCK_EDGE, BLOCK_SHIFT, BlockKey, CellKey};
 use super::window::{Brick, window_shape};
@@ -54,7 +54,7 @@ pub struct Scatter {
     /// Per bucket: delta-block index of each neighbour offset ((2M+1)³ entries, M = ⌈R/B⌉).
     neighbours: Vec<u32>,
     delta: SlotGrid,
-    spare: Vec<Box<BlockEvidence>>,
+    spare: Vec<Box<DeltaBlock>>,
     cells: Vec<CellPoint>,
     cells_sorted: Vec<CellPoint>,
     brick: Brick,
@@ -66,7 +66,7 @@ struct SlotGrid {
     min: [i32; 3],
     dims: [i64; 3],
     slots: Vec<u32>,
-    blocks: Vec<(BlockKey, Box<BlockEvidence>)>,
+    blocks: Vec<(BlockKey, Box<DeltaBlock>)>,
     /// Per block, the rows written so far (see [`ScanDelta::rows`]).
     rows: Vec<RowMask>,
 }
@@ -87,11 +87,11 @@ impl SlotGrid {
     }
 
     /// The index (into `blocks`) of the block at key `b`, allocated (zeroed) on first use.
-    fn block_index(&mut self, b: [i32; 3], spare: &mut Vec<Box<BlockEvidence>>) -> u32 {
+    fn block_index(&mut self, b: [i32; 3], spare: &mut Vec<Box<DeltaBlock>>) -> u32 {
         let s = self.index(b);
         if self.slots[s] == NO_SLOT {
             self.slots[s] = self.blocks.len() as u32;
-            let fresh = spare.pop().unwrap_or_else(BlockEvidence::zeroed);
+            let fresh = spare.pop().unwrap_or_else(DeltaBlock::zeroed);
             self.blocks.push((BlockKey::new(b[0], b[1], b[2]), fresh));
             self.rows.push([0; 2]);
         }

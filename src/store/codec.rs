@@ -1,6 +1,6 @@
 //! Block evidence ⇄ bytes (encoding 1, documented in the parent module).
 
-use crate::core::evidence::BlockEvidence;
+use crate::core::evidence::{BlockEvidence, Evidence};
 use crate::core::key::BLOCK_CELLS;
 
 const ENCODING: u8 = 1;
@@ -11,8 +11,7 @@ pub fn encode_block(block: &BlockEvidence, out: &mut Vec<u8>) {
     out.push(ENCODING);
     let start = out.len();
     out.resize(start + BITMAP_BYTES, 0);
-    for i in 0..BLOCK_CELLS {
-        let (a, b) = (block.a[i], block.b[i]);
+    for (i, &Evidence { a, b }) in block.cells().iter().enumerate() {
         if a != 0 || b != 0 {
             out[start + i / 8] |= 1 << (i % 8);
             put_varint(out, zigzag(a));
@@ -34,9 +33,10 @@ pub fn decode_block(data: &[u8]) -> Result<Box<BlockEvidence>, String> {
     let mut block = BlockEvidence::zeroed();
     for i in 0..BLOCK_CELLS {
         if bitmap[i / 8] & (1 << (i % 8)) != 0 {
-            block.a[i] = unzigzag(get_varint(&mut payload)?);
-            block.b[i] = unzigzag(get_varint(&mut payload)?);
-            if block.a[i] == 0 && block.b[i] == 0 {
+            let e =
+                Evidence { a: unzigzag(get_varint(&mut payload)?), b: unzigzag(get_varint(&mut payload)?) };
+            block.set(i, e);
+            if e.is_empty() {
                 return Err(format!("cell {i} is marked present but holds no evidence"));
             }
         }

@@ -1,5 +1,5 @@
 use super::*;
-use crate::core::evidence::BlockEvidence;
+use crate::core::evidence::{BlockEvidence, Evidence};
 use crate::core::{BlockKey, Integrator};
 use rusqlite::{Connection, params};
 
@@ -17,7 +17,7 @@ pub(super) fn cells(map: &EvidenceMap) -> Vec<(BlockKey, Vec<(i64, i64)>)> {
         .into_iter()
         .map(|k| {
             let b = map.block(k).unwrap();
-            (k, b.a.iter().copied().zip(b.b.iter().copied()).collect())
+            (k, b.cells().iter().map(|e| (e.a, e.b)).collect())
         })
         .collect()
 }
@@ -52,9 +52,8 @@ fn the_schema_in_the_file_is_the_documented_one() {
 #[test]
 fn codec_round_trip_extremes_and_rejects_garbage() {
     let mut b = BlockEvidence::zeroed();
-    b.a[0] = i64::MAX;
-    b.b[0] = i64::MIN;
-    b.a[511] = -1;
+    b.set(0, Evidence { a: i64::MAX, b: i64::MIN });
+    b.set(511, Evidence { a: -1, b: 0 });
     let mut buf = Vec::new();
     encode_block(&b, &mut buf);
     assert_eq!(*decode_block(&buf).unwrap(), *b);
