@@ -256,16 +256,17 @@ const BACKGROUND_PERIOD: Duration = Duration::from_millis(100);
 /// A latency run under ingest lasts at least this long (and the workload's sample count).
 const UNDER_INGEST_MIN: Duration = Duration::from_secs(4);
 
-/// gRPC single-point latencies while another connection inserts the drive's scans (as source
-/// `bench-background`, each acknowledged once applied) at up to 10 per second:
+/// gRPC single-point latencies while another connection inserts `sim`'s scans (as `source`,
+/// each acknowledged once applied) at up to 10 per second:
 /// (p50 µs, p99 µs, scans applied, scans applied per second).
 pub(super) async fn latencies_under_ingest(
     grpc: SocketAddr,
     w: &Workload,
     sim: &[SimScan],
+    source: &str,
 ) -> Result<(f64, f64, u64, f64)> {
     let scans: Vec<pb::Scan> =
-        sim.iter().map(|s| pb::Scan::world("bench-background", 0, s.origin, &s.points_world)).collect();
+        sim.iter().map(|s| pb::Scan::world(source, 0, s.origin, &s.points_world)).collect();
     let mut writer = connect(grpc).await?;
     let (stop, mut stopped) = tokio::sync::watch::channel(false);
     let background = tokio::spawn(async move {
