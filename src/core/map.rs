@@ -121,6 +121,9 @@ impl Slot {
 }
 
 impl EvidenceMap {
+    /// Bytes of one entry of the block table (key, block pointer, summary), for memory figures.
+    pub const TABLE_ENTRY_BYTES: usize = std::mem::size_of::<(BlockKey, Slot)>();
+
     /// An empty map. `params` must be valid ([`MapParams::validate`]).
     pub fn new(params: MapParams) -> Self {
         Self { params, blocks: FxHashMap::default() }

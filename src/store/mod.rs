@@ -14,6 +14,8 @@
 //! - `PRAGMA application_id` = `0x42474B4D` (ASCII "BGKM"): identifies a bgkmap map file.
 //! - `PRAGMA user_version` = format version ([`FORMAT_VERSION`]). A file of another version is
 //!   refused with [`StoreError::Version`], which says whether it is older or newer.
+//! - Page size: new files use 32 KiB pages so each `blocks` row stays
+//!   in its B-tree leaf; the format does not depend on it and files with any page size open.
 //!
 //! Tables (the `sql` of `sqlite_master` is exactly this text; [`SCHEMA`]):
 //!
