@@ -196,8 +196,11 @@ fn a_full_file_fails_the_write_and_changes_nothing() {
     MapFile::create(&path, &MapParams::default()).unwrap().close().unwrap();
     let mut file = MapFile::connect(&path).unwrap();
     let pages: i64 = file.conn.query_row("PRAGMA page_count", [], |r| r.get(0)).unwrap();
+    let page_bytes: i64 = file.conn.query_row("PRAGMA page_size", [], |r| r.get(0)).unwrap();
     file.set_max_pages(pages as u64 + 2).unwrap();
-    let big: Vec<NewScan> = (0..8).map(|i| new_scan("a", i, scan(i as usize))).collect();
+    // More records than two pages hold, whatever the page size (each record is about 1.4 KB).
+    let n = (3 * page_bytes / 1024).max(8) as u64;
+    let big: Vec<NewScan> = (0..n).map(|i| new_scan("a", i, scan(i as usize))).collect();
     let err = file.journal(&big).unwrap_err();
     assert!(err.to_string().contains("full"), "{err}");
     file.set_max_pages(1 << 30).unwrap();
