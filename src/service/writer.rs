@@ -42,6 +42,10 @@ pub(super) struct Writer {
     waiters: Vec<(Option<Done>, usize, bool)>,
     last_prune: Instant,
     retry: Duration,
+    /// Snapshots replaced while readers still held them. The writer frees each once it holds
+    /// the last reference, so a query never pays for freeing a whole map (thousands of block
+    /// reference counts and the block table: milliseconds on a large map).
+    retired: Mutex<Vec<Arc<Snapshot>>>,
 }
 
 impl Writer {
@@ -110,6 +114,7 @@ impl Writer {
             pending: left,
             waiters,
             last_prune,
+            retired: Mutex::new(Vec::new()),
             retry: config.write_retry,
         };
         Ok((shared, writer))
@@ -253,7 +258,17 @@ impl Writer {
             block_versions,
             history_from: old.history_from,
         };
-        *self.shared.snapshot.write().unwrap_or_else(PoisonError::into_inner) = Arc::new(snap);
+        let replaced = std::mem::replace(
+            &mut *self.shared.snapshot.write().unwrap_or_else(PoisonError::into_inner),
+            Arc::new(snap),
+        );
+        {
+            // Readers get snapshots only from `shared`, so a retired one whose only reference is
+            // ours can gain no other: dropping it here frees it on this thread.
+            let mut retired = self.retired.lock().unwrap_or_else(PoisonError::into_inner);
+            retired.push(replaced);
+            retired.retain(|s| Arc::strong_count(s) > 1 || Arc::ptr_eq(s, &old));
+        }
         if version > old.version {
             // After the snapshot: a subscriber never hears of a version it cannot read.
             let kind = UpdateKind::Live;
