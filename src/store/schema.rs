@@ -21,9 +21,11 @@ pub const SCHEMA: [&str; 5] = [
 
 /// SQLite page size of new map files. A `blocks` row lives in its B-tree leaf only up to about a
 /// quarter of a page (`WITHOUT ROWID` rows are index entries); above that the rest spills to an
-/// overflow page of its own, mostly empty. Encoded blocks run to about 4.2 KiB (all 512 cells
-/// with evidence), so with SQLite's default 4 KiB pages most took two pages and the file was
-/// twice its blocks. 32 KiB pages keep every block in its leaf. Files with other page sizes
+/// overflow page of its own, mostly empty. With SQLite's default 4 KiB pages that limit is about
+/// 1 KB, so most blocks took two pages and a file was twice its blocks. 32 KiB pages keep rows up
+/// to 8 KB in the leaf: every block of a young map (about 3 KB when all 512 cells hold evidence)
+/// and of a long-lived one, whose sums grow to 5–6 bytes per varint (16 KiB pages would spill
+/// those). The price is 32 KiB per table of a nearly empty map. Files with other page sizes
 /// (earlier files) open and work the same.
 pub const PAGE_SIZE: u32 = 32768;
 
