@@ -173,23 +173,25 @@ async fn measure_all(
     v["grpc"] = measure(&mut Grpc::connect(grpc, w).await?, w).await?;
     v["http"] = measure(&mut Http::connect(http, w).await?, w).await?;
     // zenoh (issue 5): v["zenoh"] = measure(&mut Zenoh::connect(…, w).await?, w).await?;
-    let (p50, p99, scans, rate) = latencies_under_ingest(grpc, w, sim, "bench-background").await?;
-    v["grpc"]["single_p50_us_under_ingest"] = json!(p50);
-    v["grpc"]["single_p99_us_under_ingest"] = json!(p99);
-    v["grpc"]["background_scans"] = json!(scans);
-    v["grpc"]["background_scans_per_s"] = json!(rate);
-    // The same with scans a 10 Hz sensor of the room's size sends (a dense scan takes longer
-    // than 100 ms to integrate, so the stream above cannot reach 10 scans/s).
+    // The drive's dense scans, then scans a 10 Hz sensor of the room's size sends (a dense scan
+    // takes longer than 100 ms to integrate, so the first stream cannot reach 10 scans/s).
     let (_, room) = crate::sim::simulate(1, 24, &crate::sim::Lidar::default());
-    let (p50, p99, scans, rate) = latencies_under_ingest(grpc, w, &room, "bench-background-room").await?;
-    v["grpc"]["single_p50_us_under_room_ingest"] = json!(p50);
-    v["grpc"]["single_p99_us_under_room_ingest"] = json!(p99);
-    v["grpc"]["room_background_scans"] = json!(scans);
-    v["grpc"]["room_background_scans_per_s"] = json!(rate);
-    v["grpc"]["room_background_points_per_scan"] =
-        json!(room.iter().map(|s| s.points_world.len()).sum::<usize>() / room.len().max(1));
+    for ((tag, source), scans) in UNDER_INGEST.into_iter().zip([sim, &room]) {
+        let (p50, p99, n, rate) = latencies_under_ingest(grpc, w, scans, source).await?;
+        let g = &mut v["grpc"];
+        g[format!("single_p50_us_under_{tag}ingest")] = json!(p50);
+        g[format!("single_p99_us_under_{tag}ingest")] = json!(p99);
+        g[format!("{tag}background_scans")] = json!(n);
+        g[format!("{tag}background_scans_per_s")] = json!(rate);
+        g[format!("{tag}background_points_per_scan")] =
+            json!(scans.iter().map(|s| s.points_world.len()).sum::<usize>() / scans.len().max(1));
+    }
     Ok(())
 }
+
+/// The background streams of the latency-under-ingest runs (the drive's dense scans, then
+/// room-sized scans): the prefix of their JSON keys and the scan source they insert as.
+const UNDER_INGEST: [(&str, &str); 2] = [("", "bench-background"), ("room_", "bench-background-room")];
 
 fn print_summary(v: &Value) {
     let f = |p: &str| v.pointer(p).and_then(Value::as_f64).unwrap_or(f64::NAN);
@@ -216,19 +218,14 @@ fn print_summary(v: &Value) {
     if v["grpc"].is_null() {
         return;
     }
-    println!(
-        "  gRPC single point while ingesting ({} scans at {:.1} scans/s): p50 {:.0} µs, p99 {:.0} µs",
-        v["grpc"]["background_scans"],
-        f("/grpc/background_scans_per_s"),
-        f("/grpc/single_p50_us_under_ingest"),
-        f("/grpc/single_p99_us_under_ingest")
-    );
-    println!(
-        "  gRPC single point while ingesting room scans ({} scans of {} points at {:.1} scans/s): p50 {:.0} µs, p99 {:.0} µs",
-        v["grpc"]["room_background_scans"],
-        v["grpc"]["room_background_points_per_scan"],
-        f("/grpc/room_background_scans_per_s"),
-        f("/grpc/single_p50_us_under_room_ingest"),
-        f("/grpc/single_p99_us_under_room_ingest")
-    );
+    for (tag, _) in UNDER_INGEST {
+        println!(
+            "  gRPC single point while ingesting {} scans of {} points at {:.1} scans/s: p50 {:.0} µs, p99 {:.0} µs",
+            v["grpc"][format!("{tag}background_scans")],
+            v["grpc"][format!("{tag}background_points_per_scan")],
+            f(&format!("/grpc/{tag}background_scans_per_s")),
+            f(&format!("/grpc/single_p50_us_under_{tag}ingest")),
+            f(&format!("/grpc/single_p99_us_under_{tag}ingest"))
+        );
+    }
 }

@@ -30,8 +30,8 @@ impl Evidence {
 }
 
 /// Evidence of one map block, a cell's two sums side by side: a reader of one cell touches one
-/// cache line (the block is 64-byte aligned, a cell 16 bytes), which is what point and ray
-/// queries over maps far larger than the caches wait on.
+/// cache line (a cell is 16 bytes and the block starts on a 64-byte line, so a line holds four
+/// whole cells), which is what point and ray queries over maps far larger than the caches wait on.
 #[derive(Clone, PartialEq, Eq)]
 #[repr(C, align(64))]
 pub struct BlockEvidence {
@@ -89,7 +89,7 @@ impl BlockEvidence {
     /// Cell `i` (local index, [`CellKey::index_in_block`]).
     #[inline]
     pub fn get(&self, i: usize) -> Evidence {
-        self.cells[i]
+        *self.cell(i)
     }
 
     /// A reference to cell `i`, e.g. to prefetch it.
@@ -178,11 +178,6 @@ impl std::fmt::Debug for DeltaBlock {
 impl DeltaBlock {
     pub fn zeroed() -> Box<Self> {
         Box::new(Self { a: [0; BLOCK_CELLS], b: [0; BLOCK_CELLS] })
-    }
-
-    #[inline]
-    pub fn get(&self, i: usize) -> Evidence {
-        Evidence { a: self.a[i], b: self.b[i] }
     }
 
     pub fn is_empty(&self) -> bool {

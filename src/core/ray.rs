@@ -287,7 +287,7 @@ mod tests {
         }
     }
 
-    /// The walk that reads every cell: [`traverse`], each cell's estimate, the first that stops.
+    /// The walk that reads every cell (no block summaries); the first cell that stops wins.
     fn reference_ray(
         map: &EvidenceMap,
         o: [f64; 3],
@@ -296,21 +296,22 @@ mod tests {
         stop: StopAt,
         th: &Thresholds,
     ) -> RayHit {
+        let res = map.params().resolution_m;
         let n = d.iter().map(|v| v * v).sum::<f64>().sqrt();
-        let dir = d.map(|v| v / n);
-        let cells = traverse(o, dir, range, map.params().resolution_m);
-        let mut walk = VoxelWalk::new(o, dir, cells[0], map.params().resolution_m);
+        let mut cell = CellKey::from_point(o, res).unwrap();
+        let mut walk = VoxelWalk::new(o, d.map(|v| v / n), cell, res);
         let mut entry = 0.0;
-        for (k, &cell) in cells.iter().enumerate() {
-            if k > 0 {
-                entry = walk.step().1;
+        loop {
+            let estimate = map.estimate(cell, th);
+            if CellReader::stops(stop, estimate.state) {
+                return RayHit::Blocked { cell, distance_m: entry, estimate };
             }
-            let est = map.estimate(cell, th);
-            if CellReader::stops(stop, est.state) {
-                return RayHit::Blocked { cell, distance_m: entry, estimate: est };
+            let (next, next_entry) = walk.step();
+            if next_entry > range {
+                return RayHit::Clear;
             }
+            (cell, entry) = (next, next_entry);
         }
-        RayHit::Clear
     }
 
     proptest! {

@@ -258,6 +258,8 @@ impl Writer {
             block_versions,
             history_from: old.history_from,
         };
+        let from_version = old.version;
+        drop(old);
         let replaced = std::mem::replace(
             &mut *self.shared.snapshot.write().unwrap_or_else(PoisonError::into_inner),
             Arc::new(snap),
@@ -267,12 +269,12 @@ impl Writer {
             // ours can gain no other: dropping it here frees it on this thread.
             let mut retired = self.retired.lock().unwrap_or_else(PoisonError::into_inner);
             retired.push(replaced);
-            retired.retain(|s| Arc::strong_count(s) > 1 || Arc::ptr_eq(s, &old));
+            retired.retain(|s| Arc::strong_count(s) > 1);
         }
-        if version > old.version {
+        if version > from_version {
             // After the snapshot: a subscriber never hears of a version it cannot read.
             let kind = UpdateKind::Live;
-            let update = MapUpdate { kind, from_version: old.version, version, blocks, poses, reset: false };
+            let update = MapUpdate { kind, from_version, version, blocks, poses, reset: false };
             self.shared.feed.publish(update);
         }
         let content = Arc::new(self.map.journal().content());
