@@ -172,7 +172,13 @@ async fn measure(running: &Running, a: &ServerBenchArgs, sim: &[SimScan]) -> Res
 }
 
 pub(super) async fn connect(addr: SocketAddr) -> Result<Client> {
-    Ok(Client::connect(format!("http://{addr}"))
+    use super::serve::{GRPC_CONNECTION_WINDOW, GRPC_MAX_FRAME, GRPC_STREAM_WINDOW};
+    let endpoint = tonic::transport::Endpoint::from_shared(format!("http://{addr}"))?
+        .tcp_nodelay(true)
+        .initial_stream_window_size(GRPC_STREAM_WINDOW)
+        .initial_connection_window_size(GRPC_CONNECTION_WINDOW)
+        .max_frame_size(GRPC_MAX_FRAME);
+    Ok(Client::connect(endpoint)
         .await
         .with_context(|| format!("connecting to gRPC {addr}"))?
         .max_decoding_message_size(MAX_MESSAGE)
