@@ -235,8 +235,13 @@ pub(super) fn push_key(out: &mut Vec<i32>, k: CellKey) {
 }
 
 /// Refuses an answer that would not fit in one message.
-pub(super) fn fits<M: prost::Message>(msg: M, limit: usize, what: &str, hint: &str) -> Result<M, Status> {
-    let len = msg.encoded_len();
+pub(super) fn fits<M: prost::Message + 'static>(
+    msg: M,
+    limit: usize,
+    what: &str,
+    hint: &str,
+) -> Result<M, Status> {
+    let len = super::codec::encoded_len(&msg);
     if len > limit {
         return Err(bad(
             what,

@@ -3,8 +3,12 @@
 //!   problem — not `INTERNAL`;
 //! - a message over the server's limit ([`set_max_message_bytes`]) is `RESOURCE_EXHAUSTED`, as
 //!   gRPC specifies (tonic's own check, which says `OUT_OF_RANGE`, is set 4× higher as a backstop
-//!   against unbounded buffering).
+//!   against unbounded buffering);
+//! - the point-query answer, the one bulk message, is encoded and decoded by [`super::wire`]
+//!   (prost's bytes, written in blocks).
 
+use super::{pb, wire};
+use std::any::{Any, TypeId};
 use std::marker::PhantomData;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
@@ -15,7 +19,7 @@ pub fn set_max_message_bytes(limit: usize) {
     MAX_MESSAGE_BYTES.store(limit, Ordering::Relaxed);
 }
 use tonic::Status;
-use tonic::codec::{BufferSettings, Codec, DecodeBuf, Decoder};
+use tonic::codec::{BufferSettings, Codec, DecodeBuf, Decoder, EncodeBuf, Encoder};
 use tonic_prost::{ProstDecoder, ProstEncoder};
 
 /// prost's codec with malformed input reported as `INVALID_ARGUMENT`.
@@ -35,11 +39,11 @@ where
 {
     type Encode = T;
     type Decode = U;
-    type Encoder = ProstEncoder<T>;
+    type Encoder = StrictEncoder<T>;
     type Decoder = StrictDecoder<U>;
 
     fn encoder(&mut self) -> Self::Encoder {
-        ProstEncoder::default()
+        StrictEncoder(ProstEncoder::default())
     }
 
     fn decoder(&mut self) -> Self::Decoder {
@@ -47,11 +51,64 @@ where
     }
 }
 
+/// Encodes like prost (the point-query answer through [`super::wire`]).
+#[derive(Debug)]
+pub struct StrictEncoder<T>(ProstEncoder<T>);
+
+impl<T: prost::Message + 'static> Encoder for StrictEncoder<T> {
+    type Item = T;
+    type Error = Status;
+
+    fn encode(&mut self, item: T, buf: &mut EncodeBuf<'_>) -> Result<(), Status> {
+        if let Some(r) = (&item as &dyn Any).downcast_ref::<pb::QueryPointsResponse>() {
+            buf.reserve(wire::points_response_len(r));
+            wire::encode_points_response(r, buf);
+            return Ok(());
+        }
+        self.0.encode(item, buf)
+    }
+
+    fn buffer_settings(&self) -> BufferSettings {
+        self.0.buffer_settings()
+    }
+}
+
+/// The encoded length of `msg` (the point-query answer's counted by [`super::wire`]).
+pub fn encoded_len<M: prost::Message + 'static>(msg: &M) -> usize {
+    match (msg as &dyn Any).downcast_ref::<pb::QueryPointsResponse>() {
+        Some(r) => wire::points_response_len(r),
+        None => msg.encoded_len(),
+    }
+}
+
+/// `msg`'s bytes (the point-query answer's written by [`super::wire`]).
+pub fn encode_to_vec<M: prost::Message + 'static>(msg: &M) -> Vec<u8> {
+    match (msg as &dyn Any).downcast_ref::<pb::QueryPointsResponse>() {
+        Some(r) => {
+            let mut out = Vec::with_capacity(wire::points_response_len(r));
+            wire::encode_points_response(r, &mut out);
+            out
+        }
+        None => msg.encode_to_vec(),
+    }
+}
+
+/// Decodes `bytes` as prost does (the point-query answer read by [`super::wire`] when it can).
+pub fn decode<M: prost::Message + Default + 'static>(bytes: &[u8]) -> Result<M, prost::DecodeError> {
+    if TypeId::of::<M>() == TypeId::of::<pb::QueryPointsResponse>()
+        && let Some(r) = wire::decode_points_response(bytes)
+        && let Ok(r) = (Box::new(r) as Box<dyn Any>).downcast::<M>()
+    {
+        return Ok(*r);
+    }
+    M::decode(bytes)
+}
+
 /// Decodes like prost; a decode failure becomes `INVALID_ARGUMENT`.
 #[derive(Debug)]
 pub struct StrictDecoder<U>(ProstDecoder<U>);
 
-impl<U: prost::Message + Default> Decoder for StrictDecoder<U> {
+impl<U: prost::Message + Default + 'static> Decoder for StrictDecoder<U> {
     type Item = U;
     type Error = Status;
 
@@ -63,9 +120,17 @@ impl<U: prost::Message + Default> Decoder for StrictDecoder<U> {
                 "message of {len} bytes exceeds the limit of {limit} bytes (max_message_bytes)"
             )));
         }
-        self.0
-            .decode(buf)
-            .map_err(|s| Status::invalid_argument(format!("malformed protobuf message: {}", s.message())))
+        let malformed =
+            |m: &dyn std::fmt::Display| Status::invalid_argument(format!("malformed protobuf message: {m}"));
+        if TypeId::of::<U>() == TypeId::of::<pb::QueryPointsResponse>() {
+            let bytes = prost::bytes::Buf::chunk(buf);
+            if bytes.len() == len {
+                let r = decode::<U>(bytes).map_err(|e| malformed(&e))?;
+                prost::bytes::Buf::advance(buf, len);
+                return Ok(Some(r));
+            }
+        }
+        self.0.decode(buf).map_err(|s| malformed(&s.message()))
     }
 
     fn buffer_settings(&self) -> BufferSettings {

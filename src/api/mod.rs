@@ -22,6 +22,7 @@ mod http_ops;
 pub mod status;
 pub mod viewer;
 pub mod watch;
+mod wire;
 pub mod zenoh_transport;
 
 impl pb::Scan {
