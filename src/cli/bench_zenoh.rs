@@ -228,7 +228,9 @@ async fn zenoh_points(session: &zenoh::Session, batch: usize, rng: &mut ChaCha8R
         let reply = replies.recv_async().await.map_err(|_| anyhow::anyhow!("no reply on {key}"))?;
         match reply.result() {
             Ok(sample) => {
-                Ok(pb::QueryPointsResponse::decode(&*sample.payload().to_bytes())?.probability.len())
+                Ok(crate::api::codec::decode::<pb::QueryPointsResponse>(&sample.payload().to_bytes())?
+                    .probability
+                    .len())
             }
             Err(e) => bail!("{key}: {}", e.payload().try_to_string().unwrap_or_default()),
         }

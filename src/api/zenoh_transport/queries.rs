@@ -154,7 +154,7 @@ async fn call(kind: Kind, ctx: &IngestContext, query: &Query) -> Result<Vec<u8>,
     let calls: &ProtoCalls = &ctx.calls;
     let bytes = payload(query, calls.config().max_message_bytes)?;
     Ok(match kind {
-        Kind::Points => calls.query_points(request(map, &bytes)?).await?.encode_to_vec(),
+        Kind::Points => crate::api::codec::encode_to_vec(&calls.query_points(request(map, &bytes)?).await?),
         Kind::Box => calls.query_box(request(map, &bytes)?).await?.encode_to_vec(),
         Kind::Rays => calls.cast_rays(request(map, &bytes)?).await?.encode_to_vec(),
         Kind::Ingest => ctx.ingest_query(map, &bytes, wait_applied(query)).await?,
