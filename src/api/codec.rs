@@ -4,7 +4,7 @@
 //! - a message over the server's limit ([`set_max_message_bytes`]) is `RESOURCE_EXHAUSTED`, as
 //!   gRPC specifies (tonic's own check, which says `OUT_OF_RANGE`, is set 4× higher as a backstop
 //!   against unbounded buffering);
-//! - the point-query answer, the one bulk message, is encoded and decoded by [`super::wire`]
+//! - the point-query answer, the one bulk message, is encoded and decoded by the private `api::wire` module
 //!   (prost's bytes, written in blocks).
 
 use super::{pb, wire};
@@ -51,7 +51,7 @@ where
     }
 }
 
-/// Encodes like prost (the point-query answer through [`super::wire`]).
+/// Encodes like prost (the point-query answer through `api::wire`).
 #[derive(Debug)]
 pub struct StrictEncoder<T>(ProstEncoder<T>);
 
@@ -73,7 +73,7 @@ impl<T: prost::Message + 'static> Encoder for StrictEncoder<T> {
     }
 }
 
-/// The encoded length of `msg` (the point-query answer's counted by [`super::wire`]).
+/// The encoded length of `msg` (the point-query answer's counted by the private `api::wire` module).
 pub fn encoded_len<M: prost::Message + 'static>(msg: &M) -> usize {
     match (msg as &dyn Any).downcast_ref::<pb::QueryPointsResponse>() {
         Some(r) => wire::points_response_len(r),
@@ -81,7 +81,7 @@ pub fn encoded_len<M: prost::Message + 'static>(msg: &M) -> usize {
     }
 }
 
-/// `msg`'s bytes (the point-query answer's written by [`super::wire`]).
+/// `msg`'s bytes (the point-query answer's written by the private `api::wire` module).
 pub fn encode_to_vec<M: prost::Message + 'static>(msg: &M) -> Vec<u8> {
     match (msg as &dyn Any).downcast_ref::<pb::QueryPointsResponse>() {
         Some(r) => {
@@ -93,7 +93,7 @@ pub fn encode_to_vec<M: prost::Message + 'static>(msg: &M) -> Vec<u8> {
     }
 }
 
-/// Decodes `bytes` as prost does (the point-query answer read by [`super::wire`] when it can).
+/// Decodes `bytes` as prost does (the point-query answer read by the private `api::wire` module when it can).
 pub fn decode<M: prost::Message + Default + 'static>(bytes: &[u8]) -> Result<M, prost::DecodeError> {
     if TypeId::of::<M>() == TypeId::of::<pb::QueryPointsResponse>()
         && let Some(r) = wire::decode_points_response(bytes)
