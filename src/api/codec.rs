@@ -4,8 +4,9 @@
 //! - a message over the server's limit ([`set_max_message_bytes`]) is `RESOURCE_EXHAUSTED`, as
 //!   gRPC specifies (tonic's own check, which says `OUT_OF_RANGE`, is set 4× higher as a backstop
 //!   against unbounded buffering);
-//! - the point-query answer, the one bulk message, is encoded and decoded by the private `api::wire` module
-//!   (prost's bytes, written in blocks).
+//! - the point-query answer, the one bulk message, is encoded and decoded by the private
+//!   `api::wire` module (prost's bytes, written in blocks); [`encoded_len`], [`encode_to_vec`]
+//!   and [`decode`] use it too, for transports other than gRPC.
 
 use super::{pb, wire};
 use std::any::{Any, TypeId};
@@ -51,7 +52,7 @@ where
     }
 }
 
-/// Encodes like prost (the point-query answer through `api::wire`).
+/// Encodes like prost.
 #[derive(Debug)]
 pub struct StrictEncoder<T>(ProstEncoder<T>);
 
@@ -60,12 +61,11 @@ impl<T: prost::Message + 'static> Encoder for StrictEncoder<T> {
     type Error = Status;
 
     fn encode(&mut self, item: T, buf: &mut EncodeBuf<'_>) -> Result<(), Status> {
-        if let Some(r) = (&item as &dyn Any).downcast_ref::<pb::QueryPointsResponse>() {
-            buf.reserve(wire::points_response_len(r));
-            wire::encode_points_response(r, buf);
-            return Ok(());
-        }
-        self.0.encode(item, buf)
+        let Some(r) = as_points(&item) else { return self.0.encode(item, buf) };
+        let len = wire::points_response_len(r);
+        buf.reserve(len.total);
+        wire::encode_points_response(r, &len, buf);
+        Ok(())
     }
 
     fn buffer_settings(&self) -> BufferSettings {
@@ -73,33 +73,32 @@ impl<T: prost::Message + 'static> Encoder for StrictEncoder<T> {
     }
 }
 
-/// The encoded length of `msg` (the point-query answer's counted by the private `api::wire` module).
+/// `msg` if it is the point-query answer, the one message `api::wire` handles.
+fn as_points<M: 'static>(msg: &M) -> Option<&pb::QueryPointsResponse> {
+    (msg as &dyn Any).downcast_ref()
+}
+
+/// The encoded length of `msg`.
 pub fn encoded_len<M: prost::Message + 'static>(msg: &M) -> usize {
-    match (msg as &dyn Any).downcast_ref::<pb::QueryPointsResponse>() {
-        Some(r) => wire::points_response_len(r),
-        None => msg.encoded_len(),
-    }
+    as_points(msg).map_or_else(|| msg.encoded_len(), |r| wire::points_response_len(r).total)
 }
 
-/// `msg`'s bytes (the point-query answer's written by the private `api::wire` module).
+/// `msg`'s bytes.
 pub fn encode_to_vec<M: prost::Message + 'static>(msg: &M) -> Vec<u8> {
-    match (msg as &dyn Any).downcast_ref::<pb::QueryPointsResponse>() {
-        Some(r) => {
-            let mut out = Vec::with_capacity(wire::points_response_len(r));
-            wire::encode_points_response(r, &mut out);
-            out
-        }
-        None => msg.encode_to_vec(),
-    }
+    let Some(r) = as_points(msg) else { return msg.encode_to_vec() };
+    let len = wire::points_response_len(r);
+    let mut out = Vec::with_capacity(len.total);
+    wire::encode_points_response(r, &len, &mut out);
+    out
 }
 
-/// Decodes `bytes` as prost does (the point-query answer read by the private `api::wire` module when it can).
+/// Decodes `bytes` as prost does.
 pub fn decode<M: prost::Message + Default + 'static>(bytes: &[u8]) -> Result<M, prost::DecodeError> {
-    if TypeId::of::<M>() == TypeId::of::<pb::QueryPointsResponse>()
-        && let Some(r) = wire::decode_points_response(bytes)
-        && let Ok(r) = (Box::new(r) as Box<dyn Any>).downcast::<M>()
-    {
-        return Ok(*r);
+    if TypeId::of::<M>() == TypeId::of::<pb::QueryPointsResponse>() {
+        let mut fast = wire::decode_points_response(bytes);
+        if let Some(m) = (&mut fast as &mut dyn Any).downcast_mut::<Option<M>>().and_then(Option::take) {
+            return Ok(m);
+        }
     }
     M::decode(bytes)
 }
@@ -122,13 +121,12 @@ impl<U: prost::Message + Default + 'static> Decoder for StrictDecoder<U> {
         }
         let malformed =
             |m: &dyn std::fmt::Display| Status::invalid_argument(format!("malformed protobuf message: {m}"));
-        if TypeId::of::<U>() == TypeId::of::<pb::QueryPointsResponse>() {
-            let bytes = prost::bytes::Buf::chunk(buf);
-            if bytes.len() == len {
-                let r = decode::<U>(bytes).map_err(|e| malformed(&e))?;
-                prost::bytes::Buf::advance(buf, len);
-                return Ok(Some(r));
-            }
+        // A message in one contiguous chunk (the usual case) goes through `decode`.
+        let bytes = prost::bytes::Buf::chunk(buf);
+        if bytes.len() == len {
+            let r = decode::<U>(bytes).map_err(|e| malformed(&e))?;
+            prost::bytes::Buf::advance(buf, len);
+            return Ok(Some(r));
         }
         self.0.decode(buf).map_err(|s| malformed(&s.message()))
     }

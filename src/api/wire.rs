@@ -12,16 +12,13 @@
 
 use super::pb;
 use prost::bytes::BufMut;
+use prost::encoding::{
+    WireType, decode_varint, encode_key, encode_varint, encoded_len_varint, key_len, uint64,
+};
 
-const VARINT: u64 = 0;
-const FIXED64: u64 = 1;
-const LEN: u64 = 2;
-
-/// Bytes of `v` as a protobuf varint (1 to 10).
-#[inline(always)]
-fn varint_len(v: u64) -> usize {
-    (70 - (v | 1).leading_zeros() as usize) / 7
-}
+const VARINT: u64 = WireType::Varint as u64;
+const FIXED64: u64 = WireType::SixtyFourBit as u64;
+const LEN: u64 = WireType::LengthDelimited as u64;
 
 #[inline(always)]
 fn zigzag(v: i32) -> u64 {
@@ -41,11 +38,11 @@ fn enum_varint(v: i32) -> u64 {
 }
 
 /// Bytes of a packed field whose body is `body` bytes (nothing when empty).
-fn packed_len(body: usize) -> usize {
-    if body == 0 { 0 } else { 1 + varint_len(body as u64) + body }
+fn packed_len(tag: u32, body: usize) -> usize {
+    if body == 0 { 0 } else { key_len(tag) + encoded_len_varint(body as u64) + body }
 }
 
-/// `varint_len` as a sum of comparisons, which vectorises over a column.
+/// `encoded_len_varint` as a sum of comparisons, which vectorises over a column.
 #[inline(always)]
 fn varint_len_by_steps(v: u64) -> usize {
     1 + (1..10).map(|k| usize::from(v >> (7 * k) != 0)).sum::<usize>()
@@ -60,13 +57,25 @@ fn cell_body(r: &pb::QueryPointsResponse) -> usize {
     r.cell.iter().map(|&v| 1 + (1..5).map(|k| usize::from(zigzag(v) >> (7 * k) != 0)).sum::<usize>()).sum()
 }
 
-/// The encoded length of a point-query answer (equal to prost's `encoded_len`).
-pub fn points_response_len(r: &pb::QueryPointsResponse) -> usize {
-    packed_len(8 * r.probability.len())
-        + packed_len(8 * r.variance.len())
-        + packed_len(state_body(r))
-        + packed_len(cell_body(r))
-        + if r.version == 0 { 0 } else { 1 + varint_len(r.version) }
+/// The sizes of a point-query answer, counted once for both reserving and writing it.
+#[derive(Debug, Clone, Copy)]
+pub struct PointsLen {
+    /// Bytes of the packed `state` and `cell` bodies.
+    state: usize,
+    cell: usize,
+    /// The whole message (equal to prost's `encoded_len`).
+    pub total: usize,
+}
+
+/// Measures a point-query answer.
+pub fn points_response_len(r: &pb::QueryPointsResponse) -> PointsLen {
+    let (state, cell) = (state_body(r), cell_body(r));
+    let total = packed_len(1, 8 * r.probability.len())
+        + packed_len(2, 8 * r.variance.len())
+        + packed_len(3, state)
+        + packed_len(4, cell)
+        + if r.version == 0 { 0 } else { uint64::encoded_len(5, &r.version) };
+    PointsLen { state, cell, total }
 }
 
 /// Writes varints through a stack buffer, handing it to `buf` in large slices.
@@ -101,20 +110,17 @@ impl<'a, B: BufMut> Varints<'a, B> {
     }
 }
 
-fn put_key<B: BufMut>(buf: &mut B, field: u64, wire_type: u64, body: usize) {
-    let mut w = Varints::new(buf);
-    w.put(field << 3 | wire_type);
-    if wire_type == LEN {
-        w.put(body as u64);
-    }
-    w.flush();
+/// The key and length of a packed field.
+fn put_packed_head<B: BufMut>(buf: &mut B, tag: u32, body: usize) {
+    encode_key(tag, WireType::LengthDelimited, buf);
+    encode_varint(body as u64, buf);
 }
 
-fn put_doubles<B: BufMut>(buf: &mut B, field: u64, values: &[f64]) {
+fn put_doubles<B: BufMut>(buf: &mut B, tag: u32, values: &[f64]) {
     if values.is_empty() {
         return;
     }
-    put_key(buf, field, LEN, 8 * values.len());
+    put_packed_head(buf, tag, 8 * values.len());
     let mut tmp = [0u8; 4096];
     for chunk in values.chunks(tmp.len() / 8) {
         for (out, v) in tmp.chunks_exact_mut(8).zip(chunk) {
@@ -124,27 +130,24 @@ fn put_doubles<B: BufMut>(buf: &mut B, field: u64, values: &[f64]) {
     }
 }
 
-fn put_varints<B: BufMut>(buf: &mut B, field: u64, body: usize, values: impl Iterator<Item = u64>) {
+fn put_varints<B: BufMut>(buf: &mut B, tag: u32, body: usize, values: impl Iterator<Item = u64>) {
     if body == 0 {
         return;
     }
-    put_key(buf, field, LEN, body);
+    put_packed_head(buf, tag, body);
     let mut w = Varints::new(buf);
     values.for_each(|v| w.put(v));
     w.flush();
 }
 
-/// Encodes a point-query answer (prost's bytes).
-pub fn encode_points_response<B: BufMut>(r: &pb::QueryPointsResponse, buf: &mut B) {
+/// Encodes a point-query answer (prost's bytes); `len` is its [`points_response_len`].
+pub fn encode_points_response<B: BufMut>(r: &pb::QueryPointsResponse, len: &PointsLen, buf: &mut B) {
     put_doubles(buf, 1, &r.probability);
     put_doubles(buf, 2, &r.variance);
-    put_varints(buf, 3, state_body(r), r.state.iter().map(|&v| enum_varint(v)));
-    put_varints(buf, 4, cell_body(r), r.cell.iter().map(|&v| zigzag(v)));
+    put_varints(buf, 3, len.state, r.state.iter().map(|&v| enum_varint(v)));
+    put_varints(buf, 4, len.cell, r.cell.iter().map(|&v| zigzag(v)));
     if r.version != 0 {
-        put_key(buf, 5, VARINT, 0);
-        let mut w = Varints::new(buf);
-        w.put(r.version);
-        w.flush();
+        uint64::encode(5, &r.version, buf);
     }
 }
 
@@ -154,21 +157,10 @@ struct Reader<'a> {
 }
 
 impl<'a> Reader<'a> {
+    /// A varint read by prost's own reader (so what counts as malformed is prost's).
     #[inline(always)]
     fn varint(&mut self) -> Option<u64> {
-        let mut v = 0u64;
-        for (i, &b) in self.bytes.iter().take(10).enumerate() {
-            v |= u64::from(b & 0x7f) << (7 * i);
-            if b < 0x80 {
-                // The tenth byte may carry only the top bit.
-                if i == 9 && b > 1 {
-                    return None;
-                }
-                self.bytes = &self.bytes[i + 1..];
-                return Some(v);
-            }
-        }
-        None
+        decode_varint(&mut self.bytes).ok()
     }
 
     fn take(&mut self, n: usize) -> Option<&'a [u8]> {
@@ -270,11 +262,12 @@ mod tests {
         #[test]
         fn encoding_is_prosts(r in response()) {
             let mut fast = Vec::new();
-            encode_points_response(&r, &mut fast);
+            let len = points_response_len(&r);
+            encode_points_response(&r, &len, &mut fast);
             prop_assert_eq!(&fast, &r.encode_to_vec());
-            prop_assert_eq!(points_response_len(&r), r.encoded_len());
+            prop_assert_eq!(len.total, r.encoded_len());
             for v in r.cell.iter().map(|&c| zigzag(c)).chain(r.state.iter().map(|&c| enum_varint(c))) {
-                prop_assert_eq!(varint_len_by_steps(v), varint_len(v));
+                prop_assert_eq!(varint_len_by_steps(v), encoded_len_varint(v));
             }
             let back = decode_points_response(&fast).expect("own encoding takes the fast path");
             prop_assert!(same(&back, &r));

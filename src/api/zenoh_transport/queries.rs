@@ -13,6 +13,7 @@
 use super::ZenohError;
 use super::ingest::{IngestContext, parse_key};
 use crate::api::calls::ProtoCalls;
+use crate::api::codec::encode_to_vec;
 use crate::api::pb;
 use prost::Message;
 use std::future::Future;
@@ -154,9 +155,9 @@ async fn call(kind: Kind, ctx: &IngestContext, query: &Query) -> Result<Vec<u8>,
     let calls: &ProtoCalls = &ctx.calls;
     let bytes = payload(query, calls.config().max_message_bytes)?;
     Ok(match kind {
-        Kind::Points => crate::api::codec::encode_to_vec(&calls.query_points(request(map, &bytes)?).await?),
-        Kind::Box => calls.query_box(request(map, &bytes)?).await?.encode_to_vec(),
-        Kind::Rays => calls.cast_rays(request(map, &bytes)?).await?.encode_to_vec(),
+        Kind::Points => encode_to_vec(&calls.query_points(request(map, &bytes)?).await?),
+        Kind::Box => encode_to_vec(&calls.query_box(request(map, &bytes)?).await?),
+        Kind::Rays => encode_to_vec(&calls.cast_rays(request(map, &bytes)?).await?),
         Kind::Ingest => ctx.ingest_query(map, &bytes, wait_applied(query)).await?,
         Kind::UpdatesSince => {
             let req: pb::WatchUpdatesRequest = request(map, &bytes)?;
