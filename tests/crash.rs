@@ -20,7 +20,9 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 const SOURCES: usize = 3;
-const SCANS_PER_SOURCE: usize = 60;
+/// Enough that every kill still finds scans to interrupt: the random delay before each kill lets
+/// a fast server acknowledge many scans (60 ran out once scans went straight into the map).
+const SCANS_PER_SOURCE: usize = 120;
 const KILLS: usize = 22;
 /// Every n-th point of a simulated scan (small scans keep the debug build quick).
 const THIN: usize = 8;

@@ -117,25 +117,38 @@ fn ingest(a: IngestArgs) -> Result<()> {
         let timed = std::sync::Mutex::new(Vec::with_capacity(scans.len()));
         let t_pass = Instant::now();
         let mut stage = Vec::new();
-        let done = for_each_delta_parallel(
-            &mut workers,
-            &scans,
-            |integ, s| {
+        if let [integ] = &mut workers[..] {
+            // One worker: evidence goes straight into the map's blocks (the service's path), so
+            // the map update is part of the evidence phase.
+            for s in &scans {
                 let t0 = Instant::now();
                 let n_train = integ.training(&s.points_world, s.origin_world).len();
                 let t1 = Instant::now();
-                let d = integ.training_delta(split);
+                integ.add_training_into(&mut map, split);
                 lock(&timed).push((n_train, t1 - t0, t1.elapsed()));
-                Ok::<_, std::convert::Infallible>(d)
-            },
-            |d| {
-                let t = Instant::now();
-                map.apply(d, 1);
-                stage.push(t.elapsed());
-            },
-        );
-        if let Err(never) = done {
-            match never {}
+                stage.push(std::time::Duration::ZERO);
+            }
+        } else {
+            let done = for_each_delta_parallel(
+                &mut workers,
+                &scans,
+                |integ, s| {
+                    let t0 = Instant::now();
+                    let n_train = integ.training(&s.points_world, s.origin_world).len();
+                    let t1 = Instant::now();
+                    let d = integ.training_delta(split);
+                    lock(&timed).push((n_train, t1 - t0, t1.elapsed()));
+                    Ok::<_, std::convert::Infallible>(d)
+                },
+                |d| {
+                    let t = Instant::now();
+                    map.apply(d, 1);
+                    stage.push(t.elapsed());
+                },
+            );
+            if let Err(never) = done {
+                match never {}
+            }
         }
         let wall_ms = t_pass.elapsed().as_secs_f64() * 1e3;
         if pass > 0 {

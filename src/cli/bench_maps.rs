@@ -203,7 +203,7 @@ fn base_map() -> Result<EvidenceMap> {
     let mut base = EvidenceMap::new(params);
     let mut integ = Integrator::new(params);
     for r in &scans_of(5760, 24) {
-        base.apply(&r.delta(&mut integ, 1)?, 1);
+        r.add_into(&mut integ, &mut base, 1)?;
     }
     Ok(base)
 }

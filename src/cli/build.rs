@@ -49,11 +49,8 @@ pub fn run_build(a: BuildArgs) -> Result<()> {
             Some(source) => {
                 let (raw, n_dropped) = load_raw_scan(path, &a.scan)?;
                 dropped += n_dropped;
-                let delta = raw
-                    .delta(&mut integrator, a.threads.max(1))
+                raw.add_into(&mut integrator, &mut map, a.threads.max(1))
                     .with_context(|| format!("{}", path.display()))?;
-                map.apply(&delta, 1);
-                integrator.recycle(delta);
                 let seq = a.first_seq + i as u64;
                 let now = now_nanos();
                 journal.push(NewScan {

@@ -5,15 +5,16 @@
 
 use super::evidence::{BlockEvidence, ScanDelta};
 use super::key::BlockKey;
-use super::map::EvidenceMap;
+use super::map::{BlockSink, EvidenceMap, zeroed_block};
 use rustc_hash::FxHashMap;
 use std::sync::Arc;
 
-/// Changed blocks of a map: each starts as a copy of the map's block (or zero) on first touch.
+/// Changed blocks of a map: each starts as the map's block (or zero) on first touch, shared
+/// until the first write copies it.
 #[derive(Debug)]
 pub struct MapEdit<'a> {
     base: &'a EvidenceMap,
-    blocks: FxHashMap<BlockKey, Box<BlockEvidence>>,
+    blocks: FxHashMap<BlockKey, Arc<BlockEvidence>>,
 }
 
 /// The outcome of an edit: every touched block with its new content (`None`: no evidence left,
@@ -27,10 +28,9 @@ impl<'a> MapEdit<'a> {
 
     fn block_mut(&mut self, key: BlockKey) -> &mut BlockEvidence {
         let base = self.base;
-        self.blocks.entry(key).or_insert_with(|| match base.block(key) {
-            Some(b) => Box::new(b.clone()),
-            None => BlockEvidence::zeroed(),
-        })
+        Arc::make_mut(
+            self.blocks.entry(key).or_insert_with(|| base.block_arc(key).unwrap_or_else(zeroed_block)),
+        )
     }
 
     /// Adds (`sign` ≥ 0) or subtracts (`sign` < 0) a scan's evidence.
@@ -62,13 +62,24 @@ impl<'a> MapEdit<'a> {
             .blocks
             .into_iter()
             .filter(|(k, b)| match base.block(*k) {
-                Some(old) => *old != **b,
+                Some(old) => !std::ptr::eq(old, &**b) && *old != **b,
                 None => !b.is_empty(),
             })
-            .map(|(k, b)| (k, (!b.is_empty()).then(|| Arc::from(b))))
+            .map(|(k, b)| (k, (!b.is_empty()).then_some(b)))
             .collect();
         out.sort_unstable_by_key(|(k, _)| *k);
         out
+    }
+}
+
+impl BlockSink for MapEdit<'_> {
+    fn take_block(&mut self, key: BlockKey) -> Arc<BlockEvidence> {
+        let base = self.base;
+        self.blocks.remove(&key).or_else(|| base.block_arc(key)).unwrap_or_else(zeroed_block)
+    }
+
+    fn put_block(&mut self, key: BlockKey, block: Arc<BlockEvidence>) {
+        self.blocks.insert(key, block);
     }
 }
 

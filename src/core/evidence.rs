@@ -82,6 +82,9 @@ impl std::fmt::Debug for BlockEvidence {
 }
 
 impl BlockEvidence {
+    /// A block without evidence.
+    pub const ZERO: Self = Self { cells: [Evidence { a: 0, b: 0 }; BLOCK_CELLS] };
+
     pub fn zeroed() -> Box<Self> {
         Box::new(Self { cells: [Evidence::default(); BLOCK_CELLS] })
     }
@@ -140,6 +143,40 @@ impl BlockEvidence {
             let r = m.trailing_zeros() as usize * ROW;
             m &= m - 1;
             add(&mut self.cells[r..r + ROW], &d.a[r..r + ROW], &d.b[r..r + ROW]);
+        }
+    }
+
+    /// Adds the brick rows `a` (hit mass) and `b` (free mass) to the cells `at..at + a.len()`
+    /// and zeroes them (fixed lengths for the block interior and la3dm's margin, so those
+    /// compile to a few vector instructions).
+    #[inline(always)]
+    pub(crate) fn fold_row(&mut self, at: usize, a: &mut [i32], b: &mut [i32]) {
+        #[inline(always)]
+        fn add<const N: usize>(dst: &mut [Evidence], a: &mut [i32], b: &mut [i32]) -> bool {
+            let (Some(d), Some(a), Some(b)) =
+                (dst.first_chunk_mut::<N>(), a.first_chunk_mut::<N>(), b.first_chunk_mut::<N>())
+            else {
+                return false;
+            };
+            for i in 0..N {
+                d[i].a += i64::from(a[i]);
+                d[i].b += i64::from(b[i]);
+            }
+            (*a, *b) = ([0; N], [0; N]);
+            true
+        }
+        let dst = &mut self.cells[at..at + a.len()];
+        let done = match a.len() {
+            8 => add::<8>(dst, a, b),
+            2 => add::<2>(dst, a, b),
+            _ => false,
+        };
+        if !done {
+            for (d, (a, b)) in dst.iter_mut().zip(a.iter_mut().zip(b.iter_mut())) {
+                d.a += i64::from(*a);
+                d.b += i64::from(*b);
+                (*a, *b) = (0, 0);
+            }
         }
     }
 
@@ -460,6 +497,75 @@ mod tests {
                 Scatter::default().delta_of(&labelled[..k], &geo, &table),
             ]);
             prop_assert_eq!(delta_cells(&whole), delta_cells(&parts));
+        }
+    }
+
+    /// Maps equal cell by cell (and hold the same blocks).
+    fn same_map(x: &crate::core::EvidenceMap, y: &crate::core::EvidenceMap) -> bool {
+        x.block_keys_sorted() == y.block_keys_sorted()
+            && x.block_keys_sorted().into_iter().all(|k| x.block(k) == y.block(k))
+    }
+
+    /// Adding a training set straight into a map's blocks ([`Scatter::add_into`]) gives the bits
+    /// of applying its delta, on top of evidence already there, into a map whose blocks a
+    /// snapshot shares (which must not change) and into an edit.
+    fn check_add_into(set: &TrainingSet, earlier: &TrainingSet, geo: &PairGeometry) {
+        use crate::core::EvidenceMap;
+        let table = KernelTable::new();
+        // The map's own parameters play no part in adding evidence.
+        let mut base = EvidenceMap::new(MapParams::default());
+        base.apply(&Scatter::default().delta(earlier, geo, &table), 1);
+        let mut want = base.clone();
+        want.apply(&Scatter::default().delta(set, geo, &table), 1);
+        let snapshot = base.clone();
+        let before = snapshot.clone();
+        let mut scatter = Scatter::default();
+        // Twice through one scatter: scratch space left by the first run must not leak.
+        for _ in 0..2 {
+            let mut got = base.clone();
+            scatter.add_into(set, geo, &table, &mut got);
+            assert!(same_map(&got, &want), "straight into the map");
+        }
+        let mut edit = base.edit();
+        scatter.add_into(set, geo, &table, &mut edit);
+        let blocks = edit.finish();
+        let mut edited = base.clone();
+        edited.commit_edit(blocks);
+        assert!(same_map(&edited, &want), "through an edit");
+        assert!(same_map(&snapshot, &before), "a snapshot sharing the blocks is untouched");
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(32))]
+        #[test]
+        fn adding_into_a_map_equals_applying_the_delta(
+            (pts, origin, res, ell) in random_scan(),
+            (pts2, origin2, _, _) in random_scan(),
+        ) {
+            let params = MapParams { resolution_m: res, ell_m: ell, ds_resolution_m: res, free_resolution_m: 0.3, max_range_m: 3.0, ..Default::default() };
+            let set = TrainingBuilder::default().build(&pts, origin, &params);
+            let earlier = TrainingBuilder::default().build(&pts2, origin2, &params);
+            check_add_into(&set, &earlier, &PairGeometry::new(res, ell));
+        }
+    }
+
+    /// The same for dense buckets (folded mid-bucket), far outliers (several tiles) and every
+    /// window width and the stencil path.
+    #[test]
+    fn adding_into_a_map_equals_applying_the_delta_at_the_edges() {
+        let n = 2 * super::super::window::BRICK_POINTS as usize + 3;
+        let hits: Vec<[f64; 3]> = (0..n).map(|i| [0.05 + (i % 7) as f64 * 0.1, 0.42, 0.37]).collect();
+        let dense = TrainingSet { frees: hits[..n / 3].to_vec(), hits, ..Default::default() };
+        let far = TrainingSet {
+            hits: vec![[0.0, 0.0, 0.0], [5000.0, -4000.0, 3000.0]],
+            frees: vec![[0.31, -0.2, 0.1]],
+            ..Default::default()
+        };
+        let geo = PairGeometry::new(0.1, 0.2);
+        check_add_into(&dense, &far, &geo);
+        check_add_into(&far, &dense, &geo);
+        for ell in [0.04, 0.1, 0.14, 0.2, 0.25, 0.3, 0.45] {
+            check_add_into(&far, &far, &PairGeometry::new(0.1, ell));
         }
     }
 

@@ -85,6 +85,44 @@ fn alpha_beta(e: Evidence, params: &MapParams) -> (f64, f64) {
     )
 }
 
+/// A fresh block without evidence.
+pub(crate) fn zeroed_block() -> Arc<BlockEvidence> {
+    Arc::new(BlockEvidence::ZERO)
+}
+
+/// Somewhere a scan's evidence can be added in place, block by block: the map itself or an
+/// edit of it. The fast evidence path takes each block it adds to out, changes it (copying it
+/// first only if a snapshot shares it) and puts it back, so no per-scan delta is built.
+pub trait BlockSink {
+    /// Block `key` with its current content (zero if it has none), taken out to be changed.
+    fn take_block(&mut self, key: BlockKey) -> Arc<BlockEvidence>;
+    /// Puts back a block taken with [`Self::take_block`], changed or not.
+    fn put_block(&mut self, key: BlockKey, block: Arc<BlockEvidence>);
+}
+
+impl BlockSink for EvidenceMap {
+    fn take_block(&mut self, key: BlockKey) -> Arc<BlockEvidence> {
+        self.blocks.remove(&key).map_or_else(zeroed_block, |s| s.block)
+    }
+
+    fn put_block(&mut self, key: BlockKey, block: Arc<BlockEvidence>) {
+        if block.is_empty() {
+            self.blocks.remove(&key);
+        } else {
+            self.blocks.insert(key, Slot::new(block));
+        }
+    }
+}
+
+/// Adds (`sign` ≥ 0) or subtracts (`sign` < 0) a delta in `sink`'s blocks.
+pub fn add_delta_into<S: BlockSink>(sink: &mut S, delta: &ScanDelta, sign: i64) {
+    for (key, d, rows) in delta.iter() {
+        let mut block = sink.take_block(key);
+        Arc::make_mut(&mut block).add_delta(d, sign, rows);
+        sink.put_block(key, block);
+    }
+}
+
 /// A sparse map of evidence blocks with its parameters.
 ///
 /// Blocks are shared (`Arc`) and copied on write, so a clone is a cheap immutable snapshot for
@@ -110,7 +148,7 @@ impl Slot {
     }
 
     fn zeroed() -> Self {
-        Self::new(Arc::from(BlockEvidence::zeroed()))
+        Self::new(zeroed_block())
     }
 
     /// The block, to change it (copied first if a snapshot shares it).
@@ -310,12 +348,19 @@ impl Integrator {
         threads: usize,
         scan_max_range_m: Option<f64>,
     ) -> ScanDelta {
+        let params = self.scan_params(scan_max_range_m);
+        self.training.build_into(points_world, origin_world, &params, &mut self.set);
+        self.training_delta(threads)
+    }
+
+    /// The map's parameters with a scan's own maximum range (m), if it has one, capped by the
+    /// map's (0 = unlimited on either side).
+    fn scan_params(&self, scan_max_range_m: Option<f64>) -> MapParams {
         let mut params = self.params;
         if let Some(r) = scan_max_range_m.filter(|r| *r > 0.0) {
             params.max_range_m = if params.max_range_m > 0.0 { params.max_range_m.min(r) } else { r };
         }
-        self.training.build_into(points_world, origin_world, &params, &mut self.set);
-        self.training_delta(threads)
+        params
     }
 
     /// The evidence of the training set built by the last [`Self::training`] call.
@@ -340,24 +385,47 @@ impl Integrator {
         ScanDelta::sum(parts)
     }
 
+    /// Adds the evidence of the training set built by the last [`Self::training`] call to
+    /// `sink`: on one thread straight into its blocks, on more through per-thread deltas. The
+    /// same bits as applying [`Self::training_delta`].
+    pub fn add_training_into<S: BlockSink>(&mut self, sink: &mut S, threads: usize) {
+        if threads <= 1 {
+            self.scatter.add_into(&self.set, &self.geometry, &self.table, sink);
+        } else {
+            let delta = self.training_delta(threads);
+            add_delta_into(sink, &delta, 1);
+            self.scatter.recycle(delta);
+        }
+    }
+
+    /// Adds one scan's evidence to `sink` ([`Self::scan_delta_with_range`]'s, without the delta).
+    pub fn add_scan_into<S: BlockSink>(
+        &mut self,
+        sink: &mut S,
+        points_world: &[[f32; 3]],
+        origin_world: [f64; 3],
+        threads: usize,
+        scan_max_range_m: Option<f64>,
+    ) {
+        let params = self.scan_params(scan_max_range_m);
+        self.training.build_into(points_world, origin_world, &params, &mut self.set);
+        self.add_training_into(sink, threads);
+    }
+
     /// Returns a delta's block buffers for reuse by later scans.
     pub fn recycle(&mut self, delta: ScanDelta) {
         self.scatter.recycle(delta);
     }
 
-    /// Integrates one scan into `map` and returns the number of blocks it touched.
+    /// Integrates one scan into `map`.
     pub fn integrate(
         &mut self,
         map: &mut EvidenceMap,
         points_world: &[[f32; 3]],
         origin_world: [f64; 3],
         threads: usize,
-    ) -> usize {
-        let delta = self.scan_delta(points_world, origin_world, threads);
-        let touched = delta.blocks.len();
-        map.apply(&delta, 1);
-        self.scatter.recycle(delta);
-        touched
+    ) {
+        self.add_scan_into(map, points_world, origin_world, threads, None);
     }
 }
 

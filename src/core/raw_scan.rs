@@ -3,13 +3,13 @@
 //! merges).
 //!
 //! The evidence of a scan is a pure function of its [`RawScan`] and the map's parameters:
-//! [`RawScan::delta`] always goes through [`RawScan::points_world`] and
-//! [`Integrator::scan_delta_with_range`], so the service, the replay and the offline tools get
-//! the same bits. Points keep their order: downsampling sums points voxel by voxel, so the order
+//! [`RawScan::delta`] and [`RawScan::add_into`] always go through [`RawScan::points_world`] and
+//! the same training set and scatter, so the service, the replay and the offline tools get the
+//! same bits. Points keep their order: downsampling sums points voxel by voxel, so the order
 //! is part of the result.
 
 use super::evidence::ScanDelta;
-use super::map::Integrator;
+use super::map::{BlockSink, Integrator};
 use super::pose::{PointFrame, Pose, PoseError};
 use std::borrow::Cow;
 
@@ -50,6 +50,18 @@ impl RawScan {
     pub fn delta(&self, integrator: &mut Integrator, threads: usize) -> Result<ScanDelta, PoseError> {
         let points = self.points_world()?;
         Ok(integrator.scan_delta_with_range(&points, self.origin_world(), threads, self.max_range_m))
+    }
+
+    /// Adds this scan's evidence (the bits of [`Self::delta`]) straight into `sink`.
+    pub fn add_into<S: BlockSink>(
+        &self,
+        integrator: &mut Integrator,
+        sink: &mut S,
+        threads: usize,
+    ) -> Result<(), PoseError> {
+        let points = self.points_world()?;
+        integrator.add_scan_into(sink, &points, self.origin_world(), threads, self.max_range_m);
+        Ok(())
     }
 
     /// The same scan under a corrected pose (loop closure).

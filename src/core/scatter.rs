@@ -29,10 +29,12 @@
 //! service journals and subtracts, so this is an API change), fold only the brick rows that
 //! windows touched, and evaluate only the row pairs inside the ball.
 
-use super::evidence::{DeltaBlock, PairGeometry, RowMask, ScanDelta, split_point};
+use super::evidence::{BlockEvidence, DeltaBlock, PairGeometry, RowMask, ScanDelta, split_point};
 use super::kernel::KernelTable;
 use super::key::{BLOCK_EDGE, BLOCK_SHIFT, BlockKey, CellKey};
+use super::map::BlockSink;
 use super::window::{Brick, window_shape};
+use std::sync::Arc;
 
 /// Above this many block slots the scan is split into tiles of points.
 const MAX_SLOTS: i64 = 1 << 22;
@@ -58,6 +60,8 @@ pub struct Scatter {
     cells: Vec<CellPoint>,
     cells_sorted: Vec<CellPoint>,
     brick: Brick,
+    /// Blocks taken out of a [`BlockSink`] while a tile is folded into them.
+    taken: Vec<(BlockKey, Arc<BlockEvidence>)>,
 }
 
 /// A dense grid of block slots over a box of block keys.
@@ -129,6 +133,56 @@ impl Scatter {
         if parts.len() == 1 { parts.pop().unwrap_or_default() } else { ScanDelta::sum(parts) }
     }
 
+    /// Adds the exact evidence of a training set (as [`Scatter::delta`] computes it) straight
+    /// into `sink`'s blocks: the same bits as applying the delta, without building one.
+    pub fn add_into<S: BlockSink>(
+        &mut self,
+        set: &super::training::TrainingSet,
+        geo: &PairGeometry,
+        table: &KernelTable,
+        sink: &mut S,
+    ) {
+        let mut cells = std::mem::take(&mut self.cells);
+        super::evidence::labelled_cell_points(set, geo.res_m, &mut cells);
+        self.add_cells_into(&cells, geo, table, sink);
+        self.cells = cells;
+    }
+
+    /// As [`Scatter::add_into`] for points already in cell units.
+    pub fn add_cells_into<S: BlockSink>(
+        &mut self,
+        pts: &[CellPoint],
+        geo: &PairGeometry,
+        table: &KernelTable,
+        sink: &mut S,
+    ) {
+        let r = geo.radius_cells();
+        let Some((w, margin)) = window_shape(geo.ell_cells).filter(|&(_, m)| m <= B as usize) else {
+            // Long kernels: the stencil path builds a delta.
+            let delta = self.delta_of(pts, geo, table);
+            super::map::add_delta_into(sink, &delta, 1);
+            self.recycle(delta);
+            return;
+        };
+        let mut rest = pts;
+        while !rest.is_empty() {
+            let (tile, tail) = rest.split_at(tile_len(rest, r));
+            let (lo, hi) = block_bounds(tile);
+            self.bucket(tile, lo, hi);
+            let m = (r.max(margin as i32) + B - 1) / B;
+            let mut slots = std::mem::take(&mut self.delta);
+            slots.reset(lo.map(|v| v - m), hi.map(|v| v + m));
+            let mut taken = std::mem::take(&mut self.taken);
+            let mut target = SinkTarget { slots: &mut slots, taken: &mut taken, sink: &mut *sink };
+            self.windows_of_width(w, tile, geo, table, margin, &mut target);
+            for (key, block) in taken.drain(..) {
+                sink.put_block(key, block);
+            }
+            (self.delta, self.taken) = (slots, taken);
+            rest = tail;
+        }
+    }
+
     /// Returns a delta's blocks for reuse by later scans.
     pub fn recycle(&mut self, delta: ScanDelta) {
         let rows: Vec<RowMask> = (0..delta.blocks.len()).map(|i| delta.rows_of(i)).collect();
@@ -154,13 +208,14 @@ impl Scatter {
         self.delta.reset(lo.map(|v| v - m), hi.map(|v| v + m));
         let exact_blocks = shape.is_some();
         match shape {
-            Some((1, margin)) => self.windows::<1, 1>(pts, geo, table, margin),
-            Some((2, margin)) => self.windows::<2, 8>(pts, geo, table, margin),
-            Some((3, margin)) => self.windows::<3, 27>(pts, geo, table, margin),
-            Some((4, margin)) => self.windows::<4, 64>(pts, geo, table, margin),
-            Some((5, margin)) => self.windows::<5, 125>(pts, geo, table, margin),
-            Some((6, margin)) => self.windows::<6, 216>(pts, geo, table, margin),
-            _ => self.stencils(pts, geo, table, r, m),
+            Some((w, margin)) => {
+                let mut delta = std::mem::take(&mut self.delta);
+                let mut spare = std::mem::take(&mut self.spare);
+                let mut target = DeltaTarget { delta: &mut delta, spare: &mut spare };
+                self.windows_of_width(w, pts, geo, table, margin, &mut target);
+                (self.delta, self.spare) = (delta, spare);
+            }
+            None => self.stencils(pts, geo, table, r, m),
         }
         let blocks = std::mem::take(&mut self.delta.blocks);
         let rows = std::mem::take(&mut self.delta.rows);
@@ -194,13 +249,14 @@ impl Scatter {
         }
     }
 
-    /// The lane-wise path ([`super::window`]): one brick per bucket, folded into the delta.
+    /// The lane-wise path ([`super::window`]): one brick per bucket, folded into `target`.
     fn windows<const W: usize, const W3: usize>(
         &mut self,
         pts: &[CellPoint],
         geo: &PairGeometry,
         table: &KernelTable,
         margin: usize,
+        target: &mut impl FoldTarget,
     ) {
         self.brick.reset(margin);
         // Points in bucket order, so each bucket reads one contiguous run.
@@ -217,55 +273,35 @@ impl Scatter {
             let mut rest = &sorted[start..end];
             while !rest.is_empty() {
                 if self.brick.full() {
-                    self.fold_brick(block);
+                    fold_brick(&mut self.brick, block, target);
                 }
                 let (now, later) = rest.split_at(rest.len().min(self.brick.room()));
                 self.brick.add_points::<W, W3>(now, origin, geo, table);
                 rest = later;
             }
-            self.fold_brick(block);
+            fold_brick(&mut self.brick, block, target);
         }
         self.cells_sorted = sorted;
     }
 
-    /// Adds the touched regions of the brick into the delta blocks around `block`, zeroing them.
-    fn fold_brick(&mut self, block: [i32; 3]) {
-        let Self { brick, delta, spare, .. } = self;
-        let (e, m) = (brick.edge(), brick.margin());
-        let b = B as usize;
-        // Per region: (first brick cell, first target cell, length).
-        let span = |r: usize| [(0, b - m, m), (m, 0, b), (m + b, 0, m)][r];
-        for label in 0..2 {
-            let mut mask = brick.touched[label];
-            while mask != 0 {
-                let bit = mask.trailing_zeros() as usize;
-                mask &= mask - 1;
-                let r = [bit % 3, bit / 3 % 3, bit / 9];
-                let (sx, sy, sz) = (span(r[0]), span(r[1]), span(r[2]));
-                let src = if label == 0 { &mut brick.a } else { &mut brick.b };
-                let key = [0, 1, 2].map(|i| block[i] + r[i] as i32 - 1);
-                // Windows reach their corners with zero mass: allocate only blocks that get
-                // some. Rows before the first non-zero one need no adding.
-                // Rows that got no mass are skipped (and stay zero in the delta).
-                let mut target: Option<usize> = None;
-                for z in 0..sz.2 {
-                    for y in 0..sy.2 {
-                        let from = ((sz.0 + z) * e + sy.0 + y) * e + sx.0;
-                        let row = &mut src[from..from + sx.2];
-                        if row_is_zero(row) {
-                            continue;
-                        }
-                        let idx = *target.get_or_insert_with(|| delta.block_index(key, spare) as usize);
-                        let blk = &mut delta.blocks[idx].1;
-                        let dst = if label == 0 { &mut blk.a } else { &mut blk.b };
-                        let r = (sz.1 + z) * b + sy.1 + y;
-                        delta.rows[idx][label] |= 1 << r;
-                        fold_row(&mut dst[r * b + sx.1..r * b + sx.1 + sx.2], row);
-                    }
-                }
-            }
+    /// Runs the window path of width `w` (1..=6) into `target`.
+    fn windows_of_width(
+        &mut self,
+        w: usize,
+        pts: &[CellPoint],
+        geo: &PairGeometry,
+        table: &KernelTable,
+        margin: usize,
+        target: &mut impl FoldTarget,
+    ) {
+        match w {
+            1 => self.windows::<1, 1>(pts, geo, table, margin, target),
+            2 => self.windows::<2, 8>(pts, geo, table, margin, target),
+            3 => self.windows::<3, 27>(pts, geo, table, margin, target),
+            4 => self.windows::<4, 64>(pts, geo, table, margin, target),
+            5 => self.windows::<5, 125>(pts, geo, table, margin, target),
+            _ => self.windows::<6, 216>(pts, geo, table, margin, target),
         }
-        brick.folded();
     }
 
     fn grid_block_of_slot(&self, s: usize) -> [i32; 3] {
@@ -299,6 +335,142 @@ impl Scatter {
             next[s as usize] += 1;
         }
     }
+}
+
+/// Where a folded brick's rows go: the blocks of a per-scan delta, or a map's own blocks.
+trait FoldTarget {
+    type Block<'a>: FoldBlock
+    where
+        Self: 'a;
+    /// The block at key `b`, taken or allocated on first use.
+    fn block(&mut self, b: [i32; 3]) -> Self::Block<'_>;
+}
+
+/// One block of a [`FoldTarget`], open for adding rows.
+trait FoldBlock {
+    /// Adds the hit mass `a` and the free mass `b` to row `row` (`8z + y`) from cell `x` on,
+    /// and zeroes both.
+    fn add_row(&mut self, row: usize, x: usize, a: &mut [i32], b: &mut [i32]);
+}
+
+/// Folds into the scatter's delta blocks.
+struct DeltaTarget<'a> {
+    delta: &'a mut SlotGrid,
+    spare: &'a mut Vec<Box<DeltaBlock>>,
+}
+
+/// A delta block and its row mask.
+struct DeltaRows<'a> {
+    block: &'a mut DeltaBlock,
+    rows: &'a mut RowMask,
+}
+
+impl FoldTarget for DeltaTarget<'_> {
+    type Block<'a>
+        = DeltaRows<'a>
+    where
+        Self: 'a;
+
+    #[inline(always)]
+    fn block(&mut self, b: [i32; 3]) -> DeltaRows<'_> {
+        let i = self.delta.block_index(b, self.spare) as usize;
+        DeltaRows { block: &mut self.delta.blocks[i].1, rows: &mut self.delta.rows[i] }
+    }
+}
+
+impl FoldBlock for DeltaRows<'_> {
+    #[inline(always)]
+    fn add_row(&mut self, row: usize, x: usize, a: &mut [i32], b: &mut [i32]) {
+        let at = row * B as usize + x;
+        for (label, (dst, src)) in [(&mut self.block.a, a), (&mut self.block.b, b)].into_iter().enumerate() {
+            if !row_is_zero(src) {
+                self.rows[label] |= 1 << row;
+                fold_row(&mut dst[at..at + src.len()], src);
+            }
+        }
+    }
+}
+
+/// Folds straight into the blocks of a [`BlockSink`], each taken out once per tile.
+struct SinkTarget<'a, S: BlockSink> {
+    slots: &'a mut SlotGrid,
+    taken: &'a mut Vec<(BlockKey, Arc<BlockEvidence>)>,
+    sink: &'a mut S,
+}
+
+impl<S: BlockSink> FoldTarget for SinkTarget<'_, S> {
+    type Block<'a>
+        = &'a mut BlockEvidence
+    where
+        Self: 'a;
+
+    #[inline(always)]
+    fn block(&mut self, b: [i32; 3]) -> &mut BlockEvidence {
+        let s = self.slots.index(b);
+        if self.slots.slots[s] == NO_SLOT {
+            self.slots.slots[s] = self.taken.len() as u32;
+            let key = BlockKey::new(b[0], b[1], b[2]);
+            self.taken.push((key, self.sink.take_block(key)));
+        }
+        // Copies the block first only if a snapshot shares it.
+        Arc::make_mut(&mut self.taken[self.slots.slots[s] as usize].1)
+    }
+}
+
+impl FoldBlock for &mut BlockEvidence {
+    #[inline(always)]
+    fn add_row(&mut self, row: usize, x: usize, a: &mut [i32], b: &mut [i32]) {
+        self.fold_row(row * B as usize + x, a, b);
+    }
+}
+
+/// Adds the touched regions of the brick into the blocks around `block` (the bucket's) in
+/// `target`, zeroing them.
+fn fold_brick(brick: &mut Brick, block: [i32; 3], target: &mut impl FoldTarget) {
+    let (e, m) = (brick.edge(), brick.margin());
+    let b = B as usize;
+    // Per region: (first brick cell, first target cell, length).
+    let span = |r: usize| [(0, b - m, m), (m, 0, b), (m + b, 0, m)][r];
+    let touched = brick.touched;
+    let mut mask = touched[0] | touched[1];
+    while mask != 0 {
+        let bit = mask.trailing_zeros() as usize;
+        mask &= mask - 1;
+        let r = [bit % 3, bit / 3 % 3, bit / 9];
+        let (sx, sy, sz) = (span(r[0]), span(r[1]), span(r[2]));
+        let from = |z: usize, y: usize| ((sz.0 + z) * e + sy.0 + y) * e + sx.0;
+        // Windows reach their corners with zero mass: rows that got none are skipped (they stay
+        // zero), and a block is taken only if some row of it got mass. A region has at most
+        // 8 × 8 rows, one bit each.
+        let mut rows = [0u64; 2];
+        for (label, cells) in [&brick.a, &brick.b].into_iter().enumerate() {
+            if touched[label] >> bit & 1 == 0 {
+                continue;
+            }
+            for z in 0..sz.2 {
+                for y in 0..sy.2 {
+                    let at = from(z, y);
+                    rows[label] |= u64::from(!row_is_zero(&cells[at..at + sx.2])) << (z * sy.2 + y);
+                }
+            }
+        }
+        if rows == [0, 0] {
+            continue;
+        }
+        let key = [0, 1, 2].map(|i| block[i] + r[i] as i32 - 1);
+        let mut dst = target.block(key);
+        // Both labels of a row at once (the brick is zero wherever no window added).
+        let mut m = rows[0] | rows[1];
+        while m != 0 {
+            let i = m.trailing_zeros() as usize;
+            m &= m - 1;
+            let (z, y) = (i / sy.2, i % sy.2);
+            let at = from(z, y);
+            let (a, b_) = (&mut brick.a[at..at + sx.2], &mut brick.b[at..at + sx.2]);
+            dst.add_row((sz.1 + z) * b + sy.1 + y, sx.1, a, b_);
+        }
+    }
+    brick.folded();
 }
 
 /// True when a brick row holds only zeros (fixed lengths for the block interior and la3dm's

@@ -231,12 +231,9 @@ impl DurableMap {
             for_each_delta_parallel(&mut self.workers, scans, delta, |d| edit.add_delta(d, 1))?;
         } else {
             for p in scans {
-                let delta = p
-                    .scan
-                    .delta(&mut self.integrator, self.threads)
+                p.scan
+                    .add_into(&mut self.integrator, &mut edit, self.threads)
                     .map_err(|e| bad_record(&path, &p.source, p.seq, e))?;
-                edit.add_delta(&delta, 1);
-                self.integrator.recycle(delta);
             }
         }
         let blocks = edit.finish();

@@ -140,9 +140,11 @@ impl DurableMap {
         scan: &RawScan,
         sign: i64,
     ) -> Result<(), OpError> {
-        let delta = scan
-            .delta(&mut self.integrator, self.threads)
-            .map_err(|e| OpError::Store(bad_record(self.file.path(), &id.0, id.1, e)))?;
+        let bad = |e| OpError::Store(bad_record(self.file.path(), &id.0, id.1, e));
+        if sign >= 0 {
+            return scan.add_into(&mut self.integrator, edit, self.threads).map_err(bad);
+        }
+        let delta = scan.delta(&mut self.integrator, self.threads).map_err(bad)?;
         edit.add_delta(&delta, sign);
         self.integrator.recycle(delta);
         Ok(())

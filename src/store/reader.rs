@@ -96,9 +96,8 @@ impl MapReader {
             for (source, seq, e) in journal.iter().filter(|(_, _, e)| e.status == ScanStatus::Journaled) {
                 let scan =
                     self.record(source, seq, e)?.ok_or_else(|| missing_record(&self.path, source, seq))?;
-                let delta =
-                    scan.delta(&mut integ, 1).map_err(|err| bad_record(&self.path, source, seq, err))?;
-                map.apply(&delta, 1);
+                scan.add_into(&mut integ, &mut map, 1)
+                    .map_err(|err| bad_record(&self.path, source, seq, err))?;
             }
             Ok(map)
         })();
