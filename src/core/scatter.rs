@@ -125,9 +125,9 @@ impl Scatter {
         let mut parts = Vec::new();
         let mut rest = pts;
         while !rest.is_empty() {
-            let n = tile_len(rest, r);
+            let (n, bounds) = tile_len(rest, r);
             let (tile, tail) = rest.split_at(n);
-            parts.push(self.delta_of_tile(tile, geo, table, r));
+            parts.push(self.delta_of_tile(tile, bounds, geo, table, r));
             rest = tail;
         }
         if parts.len() == 1 { parts.pop().unwrap_or_default() } else { ScanDelta::sum(parts) }
@@ -166,8 +166,8 @@ impl Scatter {
         };
         let mut rest = pts;
         while !rest.is_empty() {
-            let (tile, tail) = rest.split_at(tile_len(rest, r));
-            let (lo, hi) = block_bounds(tile);
+            let (n, (lo, hi)) = tile_len(rest, r);
+            let (tile, tail) = rest.split_at(n);
             self.bucket(tile, lo, hi);
             let m = (r.max(margin as i32) + B - 1) / B;
             let mut slots = std::mem::take(&mut self.delta);
@@ -195,11 +195,11 @@ impl Scatter {
     fn delta_of_tile(
         &mut self,
         pts: &[CellPoint],
+        (lo, hi): ([i32; 3], [i32; 3]),
         geo: &PairGeometry,
         table: &KernelTable,
         r: i32,
     ) -> ScanDelta {
-        let (lo, hi) = block_bounds(pts);
         self.bucket(pts, lo, hi);
         let shape = window_shape(geo.ell_cells).filter(|&(_, m)| m <= B as usize);
         // Delta blocks reach R cells beyond the points' blocks: at most M = ⌈R/B⌉ blocks further.
@@ -637,16 +637,18 @@ fn block_bounds(pts: &[CellPoint]) -> ([i32; 3], [i32; 3]) {
     (lo, hi)
 }
 
-/// Length of the next tile: as many points as keep both slot grids within `MAX_SLOTS`.
-fn tile_len(pts: &[CellPoint], r: i32) -> usize {
+/// Length of the next tile (as many points as keep both slot grids within `MAX_SLOTS`) and
+/// its block bounds.
+fn tile_len(pts: &[CellPoint], r: i32) -> (usize, ([i32; 3], [i32; 3])) {
     let m = i64::from((r + B - 1) / B);
-    let slots = |n: usize| {
-        let (lo, hi) = block_bounds(&pts[..n]);
+    let slots = |(lo, hi): ([i32; 3], [i32; 3])| {
         (0..3).map(|i| i64::from(hi[i]) - i64::from(lo[i]) + 1 + 2 * m).product::<i64>()
     };
     let mut n = pts.len();
-    while n > 1 && slots(n) > MAX_SLOTS {
+    let mut bounds = block_bounds(pts);
+    while n > 1 && slots(bounds) > MAX_SLOTS {
         n = n.div_ceil(2);
+        bounds = block_bounds(&pts[..n]);
     }
-    n
+    (n, bounds)
 }
