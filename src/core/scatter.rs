@@ -14,20 +14,30 @@
 //! [`super::window`]: fixed W³ windows per point in a per-bucket brick. Longer kernels take the
 //! stencil path below.
 //!
+//! On one thread, [`Scatter::add_into`] folds the bricks straight into the blocks of a
+//! [`BlockSink`] (the map or an edit of it): each block is taken out once per tile, changed in
+//! place (copied first only if a snapshot shares it) and put back — no delta blocks to fill,
+//! read back into the map and clear. Deltas ([`Scatter::delta`]) remain for several threads per
+//! scan, for removing a scan and for the parallel workers.
+//!
 //! # Where the time goes (sample data, 2-vCPU VM, release, other core idle)
 //!
 //! Stencil path: ~190k in-ball pairs per scan at ~13–17 ns per pair (~2.4–3.4 ms), a flat
 //! profile of per-row bookkeeping (~45 instructions per pair). Window path: ~370k lanes per scan
-//! (64 per point, ~52% inside the ball) in 1.3–1.8 ms with the AVX2 lookups of [`super::simd`]
-//! adding straight into an `i32` brick. Whole-ingest profile (perf, `bench ingest`, AMD EPYC):
-//! the 64 lookups + adds ~26% (one 4-lane 64-bit gather per window row; gathers are slow on
-//! these CPUs), training data ~27% (voxel hash ~20%), brick folding ~16% (stalls on the 8 KiB
-//! `i64` delta blocks, which miss L1), bucketing and window placement ~14%, map update ~3%,
-//! zeroing block buffers ~3%. A voxel table with the key beside each slot (one probe, one
-//! line) measured slower: 16-byte slots make the table 4× larger. The next steps: fold bricks
-//! straight into the map instead of per-scan delta blocks (the `ScanDelta` API is what the
-//! service journals and subtracts, so this is an API change), fold only the brick rows that
-//! windows touched, and evaluate only the row pairs inside the ball.
+//! (64 per point, ~52% inside the ball) with the AVX2 lookups of [`super::simd`] adding straight
+//! into an `i32` brick. Whole-ingest profile (perf, `bench ingest`, AMD EPYC Zen 3, straight
+//! into the map, 1.22–1.32 ms per scan): the 64 lookups + adds ~27% (one 4-lane 64-bit gather
+//! per window row; gathers are slow on these CPUs), the training data's voxel table ~21% plus
+//! ~7% for the rest of the training data, folding bricks into the map's blocks ~15% (about as
+//! many brick cells are folded as lanes added: ~119 buckets of ~48 points per scan, each
+//! brick 12³ cells per label), window placement ~9%, bucketing ~3%, new blocks and the hash
+//! table ~3%. Measured and not kept: a voxel table with the key beside each slot (16-byte
+//! slots, 4× larger: slower); the same with keys and entries in two slot-parallel arrays and a
+//! branch-free insert (no change: the lookups wait on L2, not on mispredicted branches);
+//! prefetching the table slots of a ray's free samples (no change); an `Arc::make_mut` per
+//! folded row (an atomic compare-exchange each, 26% of the fold: now once per block region).
+//! Next steps: smaller bricks for buckets of few points (free samples are isolated), and
+//! evaluating only the row pairs inside the ball.
 
 use super::evidence::{BlockEvidence, DeltaBlock, PairGeometry, RowMask, ScanDelta, split_point};
 use super::kernel::KernelTable;
