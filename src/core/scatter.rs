@@ -37,7 +37,8 @@
 //! prefetching the table slots of a ray's free samples (no change); an `Arc::make_mut` per
 //! folded row (an atomic compare-exchange each, 26% of the fold: now once per block region);
 //! a per-z mask of the brick rows windows touched, so a fold reads only those (4 interleaved
-//! runs, 3–13% slower: marking W rows per window costs more than the zero checks it saves).
+//! runs, 3–13% slower: marking W rows per window costs more than the zero checks it saves), or
+//! only the y/z span of a bucket's windows (3 interleaved runs, no change).
 //! Next steps: smaller bricks for buckets of few points (free samples are isolated), and
 //! evaluating only the row pairs inside the ball.
 
