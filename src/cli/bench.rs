@@ -85,6 +85,24 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
     }
 }
 
+/// Per scan: training points, training time, evidence time.
+type ScanTimes = std::sync::Mutex<Vec<(usize, std::time::Duration, std::time::Duration)>>;
+
+/// Builds one scan's training data, then runs `evidence` on it, and records both times.
+fn timed_scan<R>(
+    integ: &mut Integrator,
+    s: &Scan,
+    timed: &ScanTimes,
+    evidence: impl FnOnce(&mut Integrator) -> R,
+) -> R {
+    let t0 = Instant::now();
+    let n_train = integ.training(&s.points_world, s.origin_world).len();
+    let t1 = Instant::now();
+    let out = evidence(integ);
+    lock(timed).push((n_train, t1 - t0, t1.elapsed()));
+    out
+}
+
 fn ingest(a: IngestArgs) -> Result<()> {
     let (scans, source) = if let Some(n) = a.lidar64 {
         let scans = super::bench_world::as_scans(super::bench_world::outdoor_scans(n.max(1)));
@@ -114,18 +132,14 @@ fn ingest(a: IngestArgs) -> Result<()> {
     for pass in 0..=a.repeat.max(1) {
         let mut map = EvidenceMap::new(params);
         // Per scan: training points, training and evidence time (the worker's), then map update.
-        let timed = std::sync::Mutex::new(Vec::with_capacity(scans.len()));
+        let timed: ScanTimes = std::sync::Mutex::new(Vec::with_capacity(scans.len()));
         let t_pass = Instant::now();
         let mut stage = Vec::new();
         if let [integ] = &mut workers[..] {
             // One worker: evidence goes straight into the map's blocks (the service's path), so
             // the map update is part of the evidence phase.
             for s in &scans {
-                let t0 = Instant::now();
-                let n_train = integ.training(&s.points_world, s.origin_world).len();
-                let t1 = Instant::now();
-                integ.add_training_into(&mut map, split);
-                lock(&timed).push((n_train, t1 - t0, t1.elapsed()));
+                timed_scan(integ, s, &timed, |integ| integ.add_training_into(&mut map, split));
                 stage.push(std::time::Duration::ZERO);
             }
         } else {
@@ -133,11 +147,7 @@ fn ingest(a: IngestArgs) -> Result<()> {
                 &mut workers,
                 &scans,
                 |integ, s| {
-                    let t0 = Instant::now();
-                    let n_train = integ.training(&s.points_world, s.origin_world).len();
-                    let t1 = Instant::now();
-                    let d = integ.training_delta(split);
-                    lock(&timed).push((n_train, t1 - t0, t1.elapsed()));
+                    let d = timed_scan(integ, s, &timed, |integ| integ.training_delta(split));
                     Ok::<_, std::convert::Infallible>(d)
                 },
                 |d| {

@@ -28,9 +28,7 @@ impl<'a> MapEdit<'a> {
 
     fn block_mut(&mut self, key: BlockKey) -> &mut BlockEvidence {
         let base = self.base;
-        Arc::make_mut(
-            self.blocks.entry(key).or_insert_with(|| base.block_arc(key).unwrap_or_else(zeroed_block)),
-        )
+        Arc::make_mut(self.blocks.entry(key).or_insert_with(|| shared_or_zero(base, key)))
     }
 
     /// Adds (`sign` ≥ 0) or subtracts (`sign` < 0) a scan's evidence.
@@ -75,12 +73,21 @@ impl<'a> MapEdit<'a> {
 impl BlockSink for MapEdit<'_> {
     fn take_block(&mut self, key: BlockKey) -> Arc<BlockEvidence> {
         let base = self.base;
-        self.blocks.remove(&key).or_else(|| base.block_arc(key)).unwrap_or_else(zeroed_block)
+        self.blocks.remove(&key).unwrap_or_else(|| shared_or_zero(base, key))
     }
 
     fn put_block(&mut self, key: BlockKey, block: Arc<BlockEvidence>) {
         self.blocks.insert(key, block);
     }
+
+    fn add_delta(&mut self, delta: &ScanDelta, sign: i64) {
+        MapEdit::add_delta(self, delta, sign);
+    }
+}
+
+/// `map`'s block `key` (shared until written), or a zero block.
+fn shared_or_zero(map: &EvidenceMap, key: BlockKey) -> Arc<BlockEvidence> {
+    map.block_arc(key).unwrap_or_else(zeroed_block)
 }
 
 impl EvidenceMap {

@@ -98,6 +98,8 @@ pub trait BlockSink {
     fn take_block(&mut self, key: BlockKey) -> Arc<BlockEvidence>;
     /// Puts back a block taken with [`Self::take_block`], changed or not.
     fn put_block(&mut self, key: BlockKey, block: Arc<BlockEvidence>);
+    /// Adds (`sign` ≥ 0) or subtracts (`sign` < 0) a scan's delta.
+    fn add_delta(&mut self, delta: &ScanDelta, sign: i64);
 }
 
 impl BlockSink for EvidenceMap {
@@ -106,20 +108,11 @@ impl BlockSink for EvidenceMap {
     }
 
     fn put_block(&mut self, key: BlockKey, block: Arc<BlockEvidence>) {
-        if block.is_empty() {
-            self.blocks.remove(&key);
-        } else {
-            self.blocks.insert(key, Slot::new(block));
-        }
+        self.insert_shared_block(key, block);
     }
-}
 
-/// Adds (`sign` ≥ 0) or subtracts (`sign` < 0) a delta in `sink`'s blocks.
-pub fn add_delta_into<S: BlockSink>(sink: &mut S, delta: &ScanDelta, sign: i64) {
-    for (key, d, rows) in delta.iter() {
-        let mut block = sink.take_block(key);
-        Arc::make_mut(&mut block).add_delta(d, sign, rows);
-        sink.put_block(key, block);
+    fn add_delta(&mut self, delta: &ScanDelta, sign: i64) {
+        self.apply(delta, sign);
     }
 }
 
@@ -393,7 +386,7 @@ impl Integrator {
             self.scatter.add_into(&self.set, &self.geometry, &self.table, sink);
         } else {
             let delta = self.training_delta(threads);
-            add_delta_into(sink, &delta, 1);
+            sink.add_delta(&delta, 1);
             self.scatter.recycle(delta);
         }
     }

@@ -173,7 +173,7 @@ impl Scatter {
         let Some((w, margin)) = window_shape(geo.ell_cells).filter(|&(_, m)| m <= B as usize) else {
             // Long kernels: the stencil path builds a delta.
             let delta = self.delta_of(pts, geo, table);
-            super::map::add_delta_into(sink, &delta, 1);
+            sink.add_delta(&delta, 1);
             self.recycle(delta);
             return;
         };
@@ -362,8 +362,8 @@ trait FoldTarget {
 /// One block of a [`FoldTarget`], open for adding rows.
 trait FoldBlock {
     /// Adds the hit mass `a` and the free mass `b` to row `row` (`8z + y`) from cell `x` on,
-    /// and zeroes both.
-    fn add_row(&mut self, row: usize, x: usize, a: &mut [i32], b: &mut [i32]);
+    /// and zeroes both; `mass[label]` says whether that label's row holds any.
+    fn add_row(&mut self, row: usize, x: usize, a: &mut [i32], b: &mut [i32], mass: [bool; 2]);
 }
 
 /// Folds into the scatter's delta blocks.
@@ -393,10 +393,10 @@ impl FoldTarget for DeltaTarget<'_> {
 
 impl FoldBlock for DeltaRows<'_> {
     #[inline(always)]
-    fn add_row(&mut self, row: usize, x: usize, a: &mut [i32], b: &mut [i32]) {
+    fn add_row(&mut self, row: usize, x: usize, a: &mut [i32], b: &mut [i32], mass: [bool; 2]) {
         let at = row * B as usize + x;
         for (label, (dst, src)) in [(&mut self.block.a, a), (&mut self.block.b, b)].into_iter().enumerate() {
-            if !row_is_zero(src) {
+            if mass[label] {
                 self.rows[label] |= 1 << row;
                 fold_row(&mut dst[at..at + src.len()], src);
             }
@@ -432,7 +432,7 @@ impl<S: BlockSink> FoldTarget for SinkTarget<'_, S> {
 
 impl FoldBlock for &mut BlockEvidence {
     #[inline(always)]
-    fn add_row(&mut self, row: usize, x: usize, a: &mut [i32], b: &mut [i32]) {
+    fn add_row(&mut self, row: usize, x: usize, a: &mut [i32], b: &mut [i32], _: [bool; 2]) {
         self.fold_row(row * B as usize + x, a, b);
     }
 }
@@ -480,7 +480,8 @@ fn fold_brick(brick: &mut Brick, block: [i32; 3], target: &mut impl FoldTarget) 
             let (z, y) = (i / sy.2, i % sy.2);
             let at = from(z, y);
             let (a, b_) = (&mut brick.a[at..at + sx.2], &mut brick.b[at..at + sx.2]);
-            dst.add_row((sz.1 + z) * b + sy.1 + y, sx.1, a, b_);
+            let mass = rows.map(|r| r >> i & 1 != 0);
+            dst.add_row((sz.1 + z) * b + sy.1 + y, sx.1, a, b_, mass);
         }
     }
     brick.folded();
