@@ -11,7 +11,7 @@ pub const BLOCK_SHIFT: u32 = 3;
 pub const BLOCK_EDGE: i32 = 1 << BLOCK_SHIFT;
 /// Cells per block (B³).
 pub const BLOCK_CELLS: usize = (BLOCK_EDGE * BLOCK_EDGE * BLOCK_EDGE) as usize;
-const BLOCK_MASK: i32 = BLOCK_EDGE - 1;
+pub(crate) const BLOCK_MASK: i32 = BLOCK_EDGE - 1;
 
 /// Integer coordinates of one map cell: `floor(x / res)` per axis.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Default)]

@@ -2,12 +2,17 @@
 //!
 //! Geometric arguments are world-frame metres. The walk looks a block up only when it enters a
 //! new one and derives a cell's estimate only where the cell holds evidence (every other cell
-//! answers the prior, computed once per ray), which is what makes long rays cheap.
+//! answers the prior, computed once per ray). Through blocks none of whose cells can stop the
+//! ray (absent ones, or ones whose summary rules every cell out) it goes block face to block
+//! face without visiting their cells, landing exactly where the cell-by-cell walk would: that
+//! is what makes long rays cheap (8 m rays on the outdoor benchmark map: 0.6 M/s stepping every
+//! cell, 1.3–1.5 M/s skipping; the time left is mostly the block lookups).
 
 use super::evidence::{BlockEvidence, BlockSummary};
-use super::key::{BlockKey, CellKey};
+use super::key::{BLOCK_EDGE, BLOCK_MASK, BlockKey, CellKey};
 use super::map::{CellEstimate, CellState, Evidence, EvidenceMap};
 use super::params::Thresholds;
+use std::ops::ControlFlow;
 
 /// Where a ray stops.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -53,7 +58,7 @@ pub fn cast_ray(
 ) -> Result<RayHit, RayError> {
     let mut ray = RayCast::new(map, origin_world, direction_world, max_range_m, stop, th)?;
     loop {
-        if let Some(hit) = ray.advance() {
+        if let ControlFlow::Break(hit) = ray.advance() {
             return Ok(hit);
         }
     }
@@ -101,19 +106,49 @@ impl<'m> RayCast<'m> {
         })
     }
 
-    /// Tests the current cell and moves to the next; the verdict once the ray is done.
+    /// Tests the current cell and moves to the next (past every block none of whose cells can
+    /// stop the ray, when the current one is such); the verdict once the ray is done.
     #[inline(always)]
-    fn advance(&mut self) -> Option<RayHit> {
+    fn advance(&mut self) -> ControlFlow<RayHit> {
+        self.cells.enter(self.cell.block());
         if let Some(estimate) = self.cells.stops_at(self.cell) {
-            return Some(RayHit::Blocked { cell: self.cell, distance_m: self.entry_m, estimate });
+            return ControlFlow::Break(RayHit::Blocked {
+                cell: self.cell,
+                distance_m: self.entry_m,
+                estimate,
+            });
         }
-        let (next_cell, next_entry) = self.walk.step();
-        if next_entry > self.max_range_m {
-            return Some(RayHit::Clear);
-        }
+        let (next_cell, next_entry) = if self.cells.block_passes() {
+            self.skip_blocks()?
+        } else {
+            let (cell, entry) = self.walk.step();
+            if entry > self.max_range_m {
+                return ControlFlow::Break(RayHit::Clear);
+            }
+            (cell, entry)
+        };
         self.cell = next_cell;
         self.entry_m = next_entry;
-        None
+        ControlFlow::Continue(())
+    }
+
+    /// Walks block by block from the current (passable) block to the first one some cell of
+    /// which may stop the ray; that block's first cell on the ray and its entry distance, or
+    /// [`RayHit::Clear`] when the range ends first.
+    #[inline]
+    fn skip_blocks(&mut self) -> ControlFlow<RayHit, (CellKey, f64)> {
+        let mut blocks = self.walk.blocks();
+        loop {
+            let (key, axis, at) = blocks.next(&self.walk);
+            let entry = at.max(0.0);
+            if entry > self.max_range_m {
+                return ControlFlow::Break(RayHit::Clear);
+            }
+            self.cells.enter(key);
+            if !self.cells.block_passes() {
+                return ControlFlow::Continue((self.walk.enter(&blocks, axis, at), entry));
+            }
+        }
     }
 }
 
@@ -156,17 +191,29 @@ impl<'m> CellReader<'m> {
         }
     }
 
-    /// The cell's estimate when the ray stops there.
+    /// Whether no cell of the block last [`Self::enter`]ed can stop the ray (it is absent
+    /// and the prior passes, or its summary rules every cell out), so the walk may skip it.
     #[inline]
-    fn stops_at(&mut self, cell: CellKey) -> Option<CellEstimate> {
-        let key = cell.block();
-        if self.block_key != Some(key) {
-            self.block_key = Some(key);
-            let found = self.map.block_with_summary(key);
-            let passed = found.is_some_and(|(_, s)| !self.may_stop(&s));
-            self.block = found.filter(|_| !passed).map(|(b, _)| b);
-            self.absent_stops = self.prior_stops && !passed;
+    fn block_passes(&self) -> bool {
+        self.block.is_none() && !self.absent_stops
+    }
+
+    /// Looks block `key` up if the walk has just entered it.
+    #[inline]
+    fn enter(&mut self, key: BlockKey) {
+        if self.block_key == Some(key) {
+            return;
         }
+        self.block_key = Some(key);
+        let found = self.map.block_with_summary(key);
+        let passed = found.is_some_and(|(_, s)| !self.may_stop(&s));
+        self.block = found.filter(|_| !passed).map(|(b, _)| b);
+        self.absent_stops = self.prior_stops && !passed;
+    }
+
+    /// The cell's estimate when the ray stops there (its block [`Self::enter`]ed first).
+    #[inline]
+    fn stops_at(&self, cell: CellKey) -> Option<CellEstimate> {
         let e = match self.block {
             Some(b) => b.get(cell.index_in_block()),
             None => return self.absent_stops.then_some(self.prior),
@@ -179,41 +226,114 @@ impl<'m> CellReader<'m> {
     }
 }
 
-/// Incremental voxel traversal state (distances in metres along the unit direction).
-#[derive(Debug)]
+/// Voxel traversal state (distances in metres along the unit direction).
+///
+/// The distance of an axis' `n`-th boundary crossing is computed as `first + n·delta` rather
+/// than accumulated step by step, so it is a function of `n` alone: a walk that skips blocks
+/// ([`BlockWalk`]) lands on the same cell, at the same distance to the bit, as one that steps
+/// through them. Crossings happen in order of (distance, axis), x before y before z on ties.
+#[derive(Debug, Clone)]
 struct VoxelWalk {
-    cell: [i32; 3],
+    /// The cell the walk started in.
+    start: [i32; 3],
     step: [i32; 3],
-    t_max: [f64; 3],
-    t_delta: [f64; 3],
+    /// Distance of the first crossing per axis (∞ where the ray does not move along the axis).
+    first: [f64; 3],
+    /// Distance between crossings per axis (0 where the ray does not move along the axis).
+    delta: [f64; 3],
+    /// `1 / delta` (0 where the ray does not move along the axis).
+    per_delta: [f64; 3],
+    /// XOR with a cell coordinate makes its low bits count down to the block's far face along
+    /// the walk (7 where the walk goes up, 0 where it goes down or stays).
+    flip: [i32; 3],
+    /// The current cell: `start + step·crossed`.
+    cell: [i32; 3],
+    /// Crossings made so far per axis.
+    crossed: [f64; 3],
+    /// Distance of each axis' next crossing.
+    next: [f64; 3],
+}
+
+/// A walk from block to block along a [`VoxelWalk`]'s ray, by the crossings of block faces.
+#[derive(Debug)]
+struct BlockWalk {
+    block: [i32; 3],
+    /// Per axis, the number of the crossing through the current block's far face, and its
+    /// distance.
+    face: [f64; 3],
+    face_at: [f64; 3],
+}
+
+impl BlockWalk {
+    /// Moves to the next block; returns it, the axis crossed and the distance it is entered at.
+    #[inline(always)]
+    fn next(&mut self, walk: &VoxelWalk) -> (BlockKey, usize, f64) {
+        let e = VoxelWalk::first_axis(self.face_at);
+        let at = self.face_at[e];
+        self.block[e] += walk.step[e];
+        self.face[e] += f64::from(BLOCK_EDGE);
+        self.face_at[e] = walk.crossing(e, self.face[e]);
+        (BlockKey { x: self.block[0], y: self.block[1], z: self.block[2] }, e, at)
+    }
 }
 
 impl VoxelWalk {
     fn new(origin: [f64; 3], dir: [f64; 3], cell: CellKey, res: f64) -> Self {
         let c = [cell.x, cell.y, cell.z];
         let mut step = [0; 3];
-        let mut t_max = [f64::INFINITY; 3];
-        let mut t_delta = [f64::INFINITY; 3];
+        let mut first = [f64::INFINITY; 3];
+        let mut delta = [0.0; 3];
+        let mut per_delta = [0.0; 3];
+        let mut flip = [0; 3];
         for i in 0..3 {
             if dir[i] > 0.0 {
                 step[i] = 1;
-                t_max[i] = ((f64::from(c[i]) + 1.0) * res - origin[i]) / dir[i];
-                t_delta[i] = res / dir[i];
+                first[i] = ((f64::from(c[i]) + 1.0) * res - origin[i]) / dir[i];
+                delta[i] = res / dir[i];
+                per_delta[i] = dir[i] / res;
+                flip[i] = BLOCK_MASK;
             } else if dir[i] < 0.0 {
                 step[i] = -1;
-                t_max[i] = (f64::from(c[i]) * res - origin[i]) / dir[i];
-                t_delta[i] = -res / dir[i];
+                first[i] = (f64::from(c[i]) * res - origin[i]) / dir[i];
+                delta[i] = -res / dir[i];
+                per_delta[i] = -dir[i] / res;
             }
         }
-        Self { cell: c, step, t_max, t_delta }
+        Self { start: c, step, first, delta, per_delta, flip, cell: c, crossed: [0.0; 3], next: first }
+    }
+
+    /// Distance of crossing number `n` (from 0) on `axis`.
+    #[inline(always)]
+    fn crossing(&self, axis: usize, n: f64) -> f64 {
+        self.first[axis] + n * self.delta[axis]
+    }
+
+    /// The axis whose crossing at distance `t[axis]` comes first (x on ties, then y).
+    #[inline(always)]
+    fn first_axis(t: [f64; 3]) -> usize {
+        if (t[0] <= t[1]) & (t[0] <= t[2]) {
+            0
+        } else if t[1] <= t[2] {
+            1
+        } else {
+            2
+        }
+    }
+
+    /// Sets `axis`' crossings made so far.
+    #[inline(always)]
+    fn set_crossed(&mut self, axis: usize, n: f64) {
+        self.crossed[axis] = n;
+        self.cell[axis] = self.start[axis] + self.step[axis] * n as i32;
+        self.next[axis] = self.crossing(axis, n);
     }
 
     /// Moves to the next cell; returns it and the distance at which the ray enters it.
+    #[inline]
     fn step(&mut self) -> (CellKey, f64) {
-        // The axis whose boundary comes first (x on ties, then y). No array is indexed by the
-        // choice and nothing branches on it (it changes from step to step in no pattern a
-        // predictor could learn), so the walk's state stays in registers.
-        let [t0, t1, t2] = self.t_max;
+        let [t0, t1, t2] = self.next;
+        // No array is indexed by the axis chosen and nothing branches on it (it changes from
+        // step to step in no pattern a predictor could learn), so the state stays in registers.
         let x = (t0 <= t1) & (t0 <= t2);
         let y = !x & (t1 <= t2);
         let z = !x & !y;
@@ -228,10 +348,69 @@ impl VoxelWalk {
         for (axis, moves) in [x, y, z].into_iter().enumerate() {
             if moves {
                 self.cell[axis] += self.step[axis];
-                self.t_max[axis] += self.t_delta[axis];
+                self.crossed[axis] += 1.0;
+                self.next[axis] = self.crossing(axis, self.crossed[axis]);
             }
         }
-        (CellKey::new(self.cell[0], self.cell[1], self.cell[2]), entry)
+        (self.key(), entry)
+    }
+
+    /// The block walk from the current cell's block.
+    #[inline]
+    fn blocks(&self) -> BlockWalk {
+        let mut face = [0.0; 3];
+        let mut face_at = [0.0; 3];
+        for a in 0..3 {
+            // Crossings until the one through the block's far face: the cell's offset from that
+            // face, plus one.
+            let left = (self.cell[a] ^ self.flip[a]) & BLOCK_MASK;
+            face[a] = self.crossed[a] + f64::from(left);
+            face_at[a] = self.crossing(a, face[a]);
+        }
+        let b = self.key().block();
+        BlockWalk { block: [b.x, b.y, b.z], face, face_at }
+    }
+
+    /// Puts the walk where the cell-by-cell walk enters the block `blocks` has just moved to,
+    /// through a face across `axis` at distance `at`; returns the cell.
+    #[inline]
+    fn enter(&mut self, blocks: &BlockWalk, axis: usize, at: f64) -> CellKey {
+        for a in 0..3 {
+            if a == axis {
+                self.set_crossed(a, blocks.face[a] - f64::from(BLOCK_EDGE) + 1.0);
+            } else if self.step[a] != 0 {
+                let n = self.crossings_before(a, at, a < axis, blocks.face[a]);
+                self.set_crossed(a, n);
+            }
+        }
+        self.key()
+    }
+
+    /// The number of `axis`' crossings that come before distance `t` (at `t` too when `tie`):
+    /// the walk makes them before a crossing at `t` on a later axis. `face` is the crossing
+    /// through the far face of the block the walk is in on this axis, which comes after.
+    #[inline(always)]
+    fn crossings_before(&self, axis: usize, t: f64, tie: bool, face: f64) -> f64 {
+        let before = |n: f64| {
+            let c = self.crossing(axis, n);
+            c < t || (tie && c == t)
+        };
+        let lo = (face - f64::from(BLOCK_MASK)).max(0.0);
+        // Estimate (truncation floors it: it is above `lo` ≥ 0), then correct for rounding (by
+        // a step or so).
+        let est = (t - self.first[axis]) * self.per_delta[axis];
+        let mut n = if est > lo { est.min(face) as u32 as f64 } else { lo };
+        while n < face && before(n) {
+            n += 1.0;
+        }
+        while n > lo && !before(n - 1.0) {
+            n -= 1.0;
+        }
+        n
+    }
+
+    fn key(&self) -> CellKey {
+        CellKey::new(self.cell[0], self.cell[1], self.cell[2])
     }
 }
 
@@ -319,20 +498,71 @@ mod tests {
         /// Passing blocks by their summary gives the answers of reading every cell, for both
         /// stop rules and thresholds that make many or few blocks passable.
         #[test]
-        fn block_summaries_change_no_ray_answer(o in (0.5f64..9.5, 0.5f64..5.5, 0.1f64..2.4),
-                                                d in (-1.0f64..1.0, -1.0f64..1.0, -1.0f64..1.0),
+        fn block_summaries_change_no_ray_answer(o in origin([0.5, 0.5, 0.1], [9.5, 5.5, 2.4]), dir in direction(),
                                                 th_i in 0usize..3, range in 0.3f64..12.0) {
             let map = ROOM.with(|m| m.clone());
-            prop_assume!(d.0 * d.0 + d.1 * d.1 + d.2 * d.2 > 0.01);
             let th = [Thresholds::default(),
                       Thresholds { p_free: 0.45, p_occ: 0.55, var_max: 0.05 },
                       Thresholds { p_free: 0.2, p_occ: 0.9, var_max: 100.0 }][th_i];
             for stop in [StopAt::Occupied, StopAt::NotFree] {
-                let dir = [d.0, d.1, d.2];
-                let fast = cast_ray(&map, [o.0, o.1, o.2], dir, range, stop, &th).unwrap();
-                prop_assert_eq!(fast, reference_ray(&map, [o.0, o.1, o.2], dir, range, stop, &th));
+                let fast = cast_ray(&map, o, dir, range, stop, &th).unwrap();
+                prop_assert_eq!(fast, reference_ray(&map, o, dir, range, stop, &th));
             }
         }
+
+        /// Walking block by block and entering a block lands on the cell, with the crossings
+        /// and entry distance to the bit, that stepping cell by cell reaches, ties and
+        /// axis-parallel rays included.
+        #[test]
+        fn skipping_blocks_lands_where_stepping_does(o in origin([-3.0; 3], [3.0; 3]), d in direction(),
+                                                     skips in prop::collection::vec(1usize..6, 1..5)) {
+            let n = d.iter().map(|v| v * v).sum::<f64>().sqrt();
+            let cell = CellKey::from_point(o, 0.1).unwrap();
+            let mut stepper = VoxelWalk::new(o, d.map(|v| v / n), cell, 0.1);
+            let mut skipper = stepper.clone();
+            for k in skips {
+                let (mut c1, mut e1) = (stepper.key(), 0.0);
+                for _ in 0..k {
+                    let from = c1.block();
+                    while c1.block() == from {
+                        (c1, e1) = stepper.step();
+                    }
+                }
+                let mut blocks = skipper.blocks();
+                let (mut key, mut axis, mut at) = blocks.next(&skipper);
+                for _ in 1..k {
+                    (key, axis, at) = blocks.next(&skipper);
+                }
+                let c2 = skipper.enter(&blocks, axis, at);
+                prop_assert_eq!(key, c1.block());
+                prop_assert_eq!(c2, c1);
+                prop_assert_eq!(at.max(0.0).to_bits(), e1.to_bits());
+                prop_assert_eq!(skipper.crossed, stepper.crossed);
+                prop_assert_eq!(skipper.next.map(f64::to_bits), stepper.next.map(f64::to_bits));
+            }
+        }
+    }
+
+    /// Origins anywhere in a box, or on cell faces and corners of the 0.1 m grid (where
+    /// crossings tie).
+    fn origin(lo: [f64; 3], hi: [f64; 3]) -> impl Strategy<Value = [f64; 3]> {
+        let axis = move |i: usize| {
+            prop_oneof![
+                lo[i]..hi[i],
+                ((lo[i] * 20.0) as i32..(hi[i] * 20.0) as i32).prop_map(|k| f64::from(k) * 0.05)
+            ]
+        };
+        (axis(0), axis(1), axis(2)).prop_map(|(x, y, z)| [x, y, z])
+    }
+
+    /// Directions of every kind, and ones along axes, face diagonals and space diagonals.
+    fn direction() -> impl Strategy<Value = [f64; 3]> {
+        let special = prop::sample::select(vec![-1.0, -0.5, 0.0, 0.5, 1.0]);
+        prop_oneof![
+            (-1.0f64..1.0, -1.0f64..1.0, -1.0f64..1.0).prop_map(|(x, y, z)| [x, y, z]),
+            [special.clone(), special.clone(), special],
+        ]
+        .prop_filter("a direction", |d| d.iter().map(|v| v * v).sum::<f64>() > 0.01)
     }
 
     thread_local! {
