@@ -1,7 +1,7 @@
 //! `bgkmap bench`: measured figures (never timed tests).
 
 use super::args::{ScanArgs, load_scan};
-use crate::core::{EvidenceMap, Integrator, MapParams, for_each_delta_parallel};
+use crate::core::{EvidenceMap, Integrator, MapParams, integrate_parallel};
 use crate::io::scan::Scan;
 use crate::sim::{Lidar, simulate};
 use anyhow::Result;
@@ -85,8 +85,8 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
     }
 }
 
-/// Per scan: training points, training time, evidence time.
-type ScanTimes = std::sync::Mutex<Vec<(usize, std::time::Duration, std::time::Duration)>>;
+/// Per scan: training points, training time, evidence time, when it was done.
+type ScanTimes = std::sync::Mutex<Vec<(usize, std::time::Duration, std::time::Duration, Instant)>>;
 
 /// Builds one scan's training data, then runs `evidence` on it, and records both times.
 fn timed_scan<R>(
@@ -99,7 +99,8 @@ fn timed_scan<R>(
     let n_train = integ.training(&s.points_world, s.origin_world).len();
     let t1 = Instant::now();
     let out = evidence(integ);
-    lock(timed).push((n_train, t1 - t0, t1.elapsed()));
+    let t2 = Instant::now();
+    lock(timed).push((n_train, t1 - t0, t2 - t1, t2));
     out
 }
 
@@ -126,45 +127,28 @@ fn ingest(a: IngestArgs) -> Result<()> {
     let mut workers: Vec<Integrator> = (0..threads).map(|_| Integrator::new(params)).collect();
     let mut per_scan_ms = Vec::new();
     let mut totals_ms = Vec::new();
-    // Where the time goes, per scan: training data, evidence scatter, map update.
-    let mut phases_ms: [Vec<f64>; 3] = Default::default();
+    // Where the time goes: per scan, training data and evidence (into the map, or into a
+    // worker's own map); per pass, adding the workers' maps into the map after the last scan.
+    let mut phases_ms: [Vec<f64>; 2] = Default::default();
+    let mut merge_ms = Vec::new();
     let mut pairs_in = (0usize, 0usize);
     for pass in 0..=a.repeat.max(1) {
         let mut map = EvidenceMap::new(params);
-        // Per scan: training points, training and evidence time (the worker's), then map update.
         let timed: ScanTimes = std::sync::Mutex::new(Vec::with_capacity(scans.len()));
         let t_pass = Instant::now();
-        let mut stage = Vec::new();
-        if let [integ] = &mut workers[..] {
-            // One worker: evidence goes straight into the map's blocks (the service's path), so
-            // the map update is part of the evidence phase.
-            for s in &scans {
-                timed_scan(integ, s, &timed, |integ| integ.add_training_into(&mut map, split));
-                stage.push(std::time::Duration::ZERO);
-            }
-        } else {
-            let done = for_each_delta_parallel(
-                &mut workers,
-                &scans,
-                |integ, s| {
-                    let d = timed_scan(integ, s, &timed, |integ| integ.training_delta(split));
-                    Ok::<_, std::convert::Infallible>(d)
-                },
-                |d| {
-                    let t = Instant::now();
-                    map.apply(d, 1);
-                    stage.push(t.elapsed());
-                },
-            );
-            if let Err(never) = done {
-                match never {}
-            }
+        let done = integrate_parallel(&mut workers, &scans, &mut map, |integ, s, sink| {
+            timed_scan(integ, s, &timed, |integ| integ.add_training_into(sink, split));
+            Ok::<_, std::convert::Infallible>(())
+        });
+        if let Err(never) = done {
+            match never {}
         }
-        let wall_ms = t_pass.elapsed().as_secs_f64() * 1e3;
+        let t_end = Instant::now();
+        let wall_ms = (t_end - t_pass).as_secs_f64() * 1e3;
         if pass > 0 {
-            // Workers finish scans in their own order: pair timings by completion order.
-            for ((n_train, train, scatter), apply) in lock(&timed).iter().zip(&stage) {
-                let parts = [*train, *scatter, *apply].map(|d| d.as_secs_f64() * 1e3);
+            let timed = lock(&timed);
+            for &(n_train, train, evidence, _) in timed.iter() {
+                let parts = [train, evidence].map(|d| d.as_secs_f64() * 1e3);
                 per_scan_ms.push(parts.iter().sum());
                 for (v, ms) in phases_ms.iter_mut().zip(parts) {
                     v.push(ms);
@@ -172,12 +156,14 @@ fn ingest(a: IngestArgs) -> Result<()> {
                 pairs_in.0 += n_train;
                 pairs_in.1 += 1;
             }
+            let last = timed.iter().map(|t| t.3).max().unwrap_or(t_end);
+            merge_ms.push((t_end - last).as_secs_f64() * 1e3);
             totals_ms.push(wall_ms);
         }
     }
-    let [mut train_ms, mut scatter_ms, mut apply_ms] = phases_ms;
+    let [mut train_ms, mut scatter_ms] = phases_ms;
     let phase =
-        [percentile(&mut train_ms, 0.5), percentile(&mut scatter_ms, 0.5), percentile(&mut apply_ms, 0.5)];
+        [percentile(&mut train_ms, 0.5), percentile(&mut scatter_ms, 0.5), percentile(&mut merge_ms, 0.5)];
     let training_points_mean = pairs_in.0 as f64 / pairs_in.1.max(1) as f64;
     let points: usize = scans.iter().map(|s| s.points_world.len()).sum();
     let med = percentile(&mut per_scan_ms, 0.5);
@@ -193,14 +179,15 @@ fn ingest(a: IngestArgs) -> Result<()> {
             "raw_points": points, "points_per_s": points_per_s,
             "range_mode": params.range_mode.as_str(),
             "training_points_per_scan_mean": training_points_mean,
-            "phase_ms_median": {"training": phase[0], "evidence": phase[1], "map_update": phase[2]},
+            "phase_ms_median": {"training": phase[0], "evidence": phase[1]},
+            "merge_ms_median": phase[2],
         });
         println!("{v}");
     } else {
         println!(
             "ingest {source}: {} scans × {} passes, {threads} worker(s) × {split} thread(s) per scan: per scan median {med:.3} ms, p90 {p90:.3} ms; \
              all scans median {total_med:.2} ms ({:.2} M raw points/s); per-scan medians: training {:.3} ms, \
-             evidence {:.3} ms, map update {:.3} ms ({training_points_mean:.0} training points per scan)",
+             evidence {:.3} ms ({training_points_mean:.0} training points per scan); adding the workers' maps {:.3} ms per pass",
             scans.len(),
             a.repeat.max(1),
             points_per_s / 1e6,

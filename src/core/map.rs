@@ -100,6 +100,13 @@ pub trait BlockSink {
     fn put_block(&mut self, key: BlockKey, block: Arc<BlockEvidence>);
     /// Adds (`sign` ≥ 0) or subtracts (`sign` < 0) a scan's delta.
     fn add_delta(&mut self, delta: &ScanDelta, sign: i64);
+
+    /// Adds a whole block of evidence (another map's) to block `key`.
+    fn add_block(&mut self, key: BlockKey, block: Arc<BlockEvidence>) {
+        let mut mine = self.take_block(key);
+        Arc::make_mut(&mut mine).add_scaled(&block, 1);
+        self.put_block(key, mine);
+    }
 }
 
 impl BlockSink for EvidenceMap {
@@ -113,6 +120,16 @@ impl BlockSink for EvidenceMap {
 
     fn add_delta(&mut self, delta: &ScanDelta, sign: i64) {
         self.apply(delta, sign);
+    }
+
+    fn add_block(&mut self, key: BlockKey, block: Arc<BlockEvidence>) {
+        match self.blocks.get_mut(&key) {
+            Some(s) => {
+                Arc::make_mut(&mut s.block).add_scaled(&block, 1);
+                s.summary = OnceLock::new();
+            }
+            None => self.insert_shared_block(key, block),
+        }
     }
 }
 
@@ -381,7 +398,7 @@ impl Integrator {
     /// Adds the evidence of the training set built by the last [`Self::training`] call to
     /// `sink`: on one thread straight into its blocks, on more through per-thread deltas. The
     /// same bits as applying [`Self::training_delta`].
-    pub fn add_training_into<S: BlockSink>(&mut self, sink: &mut S, threads: usize) {
+    pub fn add_training_into<S: BlockSink + ?Sized>(&mut self, sink: &mut S, threads: usize) {
         if threads <= 1 {
             self.scatter.add_into(&self.set, &self.geometry, &self.table, sink);
         } else {
@@ -392,7 +409,7 @@ impl Integrator {
     }
 
     /// Adds one scan's evidence to `sink` ([`Self::scan_delta_with_range`]'s, without the delta).
-    pub fn add_scan_into<S: BlockSink>(
+    pub fn add_scan_into<S: BlockSink + ?Sized>(
         &mut self,
         sink: &mut S,
         points_world: &[[f32; 3]],
@@ -422,57 +439,71 @@ impl Integrator {
     }
 }
 
-/// Integrates many scans on one thread per integrator in `workers`: each worker takes the next
-/// scan not yet taken, computes its delta and hands it to `add` (called under a lock, one delta
-/// at a time, in no fixed order) before recycling it. Evidence is integer, so any
-/// order gives the same bits as adding the scans one after another. With one worker (or one scan)
-/// everything runs on the calling thread. The first error by scan order is returned; deltas of
-/// other scans may have been added by then, so callers add into an edit they can drop.
-pub fn for_each_delta_parallel<S, E>(
+/// Integrates many scans into `sink` on one thread per integrator in `workers`: each worker
+/// takes the next scan not yet taken and `add`s it, the first worker (on the calling thread)
+/// straight into `sink`, every other into a map of its own that goes into `sink` block by block
+/// once all scans are done (so a worker pays one block addition per block its scans touched,
+/// not one delta per scan). Evidence is integer, so any split gives the same bits as adding
+/// the scans one after another. With one worker (or one scan) everything runs on the calling
+/// thread. The first error by scan order is returned; the evidence of other scans may have gone
+/// into `sink` by then, so callers add into an edit they can drop.
+pub fn integrate_parallel<S, K, E>(
     workers: &mut [Integrator],
     scans: &[S],
-    delta: impl Fn(&mut Integrator, &S) -> Result<ScanDelta, E> + Sync,
-    add: impl FnMut(&ScanDelta) + Send,
+    sink: &mut K,
+    add: impl Fn(&mut Integrator, &S, &mut dyn BlockSink) -> Result<(), E> + Sync,
 ) -> Result<(), E>
 where
     S: Sync,
+    K: BlockSink,
     E: Send,
 {
     let n = workers.len().min(scans.len());
+    let Some((first, others)) = workers.split_first_mut() else { return Ok(()) };
     if n <= 1 {
-        let (Some(integ), mut add) = (workers.first_mut(), add) else { return Ok(()) };
-        for s in scans {
-            let d = delta(integ, s)?;
-            add(&d);
-            integ.recycle(d);
-        }
-        return Ok(());
+        return scans.iter().try_for_each(|s| add(first, s, sink));
     }
-    let add = std::sync::Mutex::new(add);
     let next = std::sync::atomic::AtomicUsize::new(0);
-    let (delta, add, next) = (&delta, &add, &next);
-    let results: Vec<Result<(), (usize, E)>> = std::thread::scope(|scope| {
-        let handles: Vec<_> = workers[..n]
+    let run = |integ: &mut Integrator, sink: &mut dyn BlockSink| -> Result<(), (usize, E)> {
+        loop {
+            let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            let Some(s) = scans.get(i) else { return Ok(()) };
+            add(integ, s, sink).map_err(|e| (i, e))?;
+        }
+    };
+    let params = first.params;
+    let (mine, theirs): (_, Vec<_>) = std::thread::scope(|scope| {
+        let handles: Vec<_> = others[..n - 1]
             .iter_mut()
             .map(|integ| {
+                let run = &run;
                 scope.spawn(move || {
-                    loop {
-                        let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-                        let Some(s) = scans.get(i) else { break };
-                        let d = delta(integ, s).map_err(|e| (i, e))?;
-                        (add.lock().unwrap_or_else(std::sync::PoisonError::into_inner))(&d);
-                        integ.recycle(d);
-                    }
-                    Ok(())
+                    let mut own = EvidenceMap::new(params);
+                    let done = run(integ, &mut own);
+                    (own, done)
                 })
             })
             .collect();
-        handles.into_iter().map(|h| h.join().unwrap_or_else(|e| std::panic::resume_unwind(e))).collect()
+        let mine = run(first, sink);
+        let theirs =
+            handles.into_iter().map(|h| h.join().unwrap_or_else(|e| std::panic::resume_unwind(e))).collect();
+        (mine, theirs)
     });
-    match results.into_iter().filter_map(Result::err).min_by_key(|(i, _)| *i) {
-        Some((_, e)) => Err(e),
-        None => Ok(()),
+    let mut failed = mine.err();
+    for (own, done) in theirs {
+        if let Err(e) = done {
+            failed = Some(match failed {
+                Some(f) if f.0 < e.0 => f,
+                _ => e,
+            });
+        }
+        if failed.is_none() {
+            for (key, slot) in own.blocks {
+                sink.add_block(key, slot.block);
+            }
+        }
     }
+    failed.map_or(Ok(()), |(_, e)| Err(e))
 }
 
 #[cfg(test)]
@@ -580,8 +611,9 @@ mod tests {
                 (pts.into_iter().map(|p| [p[0] + shift, p[1] - shift, p[2]]).collect(), o)
             })
             .collect();
-        let delta = |integ: &mut Integrator, s: &(Vec<[f32; 3]>, [f64; 3])| {
-            Ok::<_, std::convert::Infallible>(integ.scan_delta(&s.0, s.1, 1))
+        let add = |integ: &mut Integrator, s: &(Vec<[f32; 3]>, [f64; 3]), sink: &mut dyn BlockSink| {
+            integ.add_scan_into(sink, &s.0, s.1, 1, None);
+            Ok::<_, std::convert::Infallible>(())
         };
         let mut serial = EvidenceMap::new(params);
         for s in &scans {
@@ -589,18 +621,25 @@ mod tests {
         }
         for n in [1, 2, 3] {
             let mut workers: Vec<Integrator> = (0..n).map(|_| Integrator::new(params)).collect();
+            // Into an empty map and into one that already holds the scans' blocks.
             let mut map = EvidenceMap::new(params);
-            for_each_delta_parallel(&mut workers, &scans, delta, |d| map.apply(d, 1)).unwrap();
+            integrate_parallel(&mut workers, &scans, &mut map, add).unwrap();
+            let mut twice = serial.clone();
+            integrate_parallel(&mut workers, &scans, &mut twice, add).unwrap();
             assert_eq!(map.block_keys_sorted(), serial.block_keys_sorted(), "{n} workers");
             for k in serial.block_keys_sorted() {
                 assert!(map.block(k) == serial.block(k), "{n} workers: block {k:?} differs");
+                let mut doubled = serial.block(k).unwrap().clone();
+                doubled.add_scaled(serial.block(k).unwrap(), 1);
+                assert!(twice.block(k) == Some(&doubled), "{n} workers, second time: block {k:?} differs");
             }
         }
         // The first failing scan's error, by scan order.
         let mut workers: Vec<Integrator> = (0..3).map(|_| Integrator::new(params)).collect();
         let fail =
-            |_: &mut Integrator, i: &usize| if *i % 2 == 1 { Err(*i) } else { Ok(ScanDelta::default()) };
-        let err = for_each_delta_parallel(&mut workers, &[0usize, 1, 2, 3, 4, 5], fail, |_| {});
+            |_: &mut Integrator, i: &usize, _: &mut dyn BlockSink| if *i % 2 == 1 { Err(*i) } else { Ok(()) };
+        let err =
+            integrate_parallel(&mut workers, &[0usize, 1, 2, 3, 4, 5], &mut EvidenceMap::new(params), fail);
         assert_eq!(err, Err(1));
     }
 

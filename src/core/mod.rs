@@ -21,7 +21,7 @@ pub mod window;
 
 pub use edit::{EditedBlocks, MapEdit};
 pub use key::{BlockKey, CellKey};
-pub use map::{BlockSink, CellEstimate, CellState, EvidenceMap, Integrator, for_each_delta_parallel};
+pub use map::{BlockSink, CellEstimate, CellState, EvidenceMap, Integrator, integrate_parallel};
 pub use params::{MapParams, RangeMode, Thresholds};
 pub use pose::{PointFrame, Pose};
 pub use raw_scan::RawScan;

@@ -53,7 +53,7 @@ impl RawScan {
     }
 
     /// Adds this scan's evidence (the bits of [`Self::delta`]) straight into `sink`.
-    pub fn add_into<S: BlockSink>(
+    pub fn add_into<S: BlockSink + ?Sized>(
         &self,
         integrator: &mut Integrator,
         sink: &mut S,

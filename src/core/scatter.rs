@@ -148,7 +148,7 @@ impl Scatter {
 
     /// Adds the exact evidence of a training set (as [`Scatter::delta`] computes it) straight
     /// into `sink`'s blocks: the same bits as applying the delta, without building one.
-    pub fn add_into<S: BlockSink>(
+    pub fn add_into<S: BlockSink + ?Sized>(
         &mut self,
         set: &super::training::TrainingSet,
         geo: &PairGeometry,
@@ -162,7 +162,7 @@ impl Scatter {
     }
 
     /// As [`Scatter::add_into`] for points already in cell units.
-    pub fn add_cells_into<S: BlockSink>(
+    pub fn add_cells_into<S: BlockSink + ?Sized>(
         &mut self,
         pts: &[CellPoint],
         geo: &PairGeometry,
@@ -405,13 +405,13 @@ impl FoldBlock for DeltaRows<'_> {
 }
 
 /// Folds straight into the blocks of a [`BlockSink`], each taken out once per tile.
-struct SinkTarget<'a, S: BlockSink> {
+struct SinkTarget<'a, S: BlockSink + ?Sized> {
     slots: &'a mut SlotGrid,
     taken: &'a mut Vec<(BlockKey, Arc<BlockEvidence>)>,
     sink: &'a mut S,
 }
 
-impl<S: BlockSink> FoldTarget for SinkTarget<'_, S> {
+impl<S: BlockSink + ?Sized> FoldTarget for SinkTarget<'_, S> {
     type Block<'a>
         = &'a mut BlockEvidence
     where

@@ -11,7 +11,7 @@ use super::file::{Commit, MapFile};
 use super::journal::{JournalEntry, JournalIndex, ScanStatus};
 use super::lock::MapLock;
 use super::reader::{CorruptBlock, bad_record, missing_record};
-use crate::core::{EvidenceMap, Integrator, RawScan, for_each_delta_parallel};
+use crate::core::{BlockSink, EvidenceMap, Integrator, RawScan, integrate_parallel};
 use std::path::Path;
 
 /// How long raw scans stay in the journal once their evidence is applied.
@@ -225,10 +225,10 @@ impl DurableMap {
             // Several scans: one per thread at a time (integer evidence: any order, same bits).
             let params = *self.map.params();
             self.workers.resize_with(self.threads, || Integrator::new(params));
-            let delta = |integ: &mut Integrator, p: &Pending| {
-                p.scan.delta(integ, 1).map_err(|e| bad_record(&path, &p.source, p.seq, e))
+            let add = |integ: &mut Integrator, p: &Pending, sink: &mut dyn BlockSink| {
+                p.scan.add_into(integ, sink, 1).map_err(|e| bad_record(&path, &p.source, p.seq, e))
             };
-            for_each_delta_parallel(&mut self.workers, scans, delta, |d| edit.add_delta(d, 1))?;
+            integrate_parallel(&mut self.workers, scans, &mut edit, add)?;
         } else {
             for p in scans {
                 p.scan
