@@ -47,6 +47,11 @@ impl TrainingSet {
 /// Voxels are found through an open-addressing table keyed by the packed voxel key (linear
 /// probing, multiplicative hash): cheaper than a general hash map for the ~30k lookups a scan
 /// makes. Voxel keys must lie within ±2^20 per axis (±100 km at 0.1 m).
+///
+/// Tried and not kept (2026-12-02): remembering, per free-sample number, the voxel the previous
+/// ray's sample fell in, so a sample in the same voxel skips the probe. Same bits, the same
+/// instruction count (callgrind), 3–4% less training time on the sample scans and nothing
+/// measurable on the dense drive: the table already lives in L2.
 #[derive(Debug, Default)]
 pub struct VoxelCentroids {
     /// Slot → index into `sums` + 1 (0 = empty).
