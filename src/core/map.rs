@@ -124,10 +124,7 @@ impl BlockSink for EvidenceMap {
 
     fn add_block(&mut self, key: BlockKey, block: Arc<BlockEvidence>) {
         match self.blocks.get_mut(&key) {
-            Some(s) => {
-                Arc::make_mut(&mut s.block).add_scaled(&block, 1);
-                s.summary = OnceLock::new();
-            }
+            Some(s) => s.block_mut().add_scaled(&block, 1),
             None => self.insert_shared_block(key, block),
         }
     }
