@@ -119,8 +119,8 @@ impl ProtoCalls {
             .enumerate()
             .map(|(i, r)| {
                 Ok(RayInput {
-                    origin: vec3(&r.origin, &format!("CastRaysRequest.rays[{i}].origin"))?,
-                    direction: vec3(&r.direction, &format!("CastRaysRequest.rays[{i}].direction"))?,
+                    origin: vec3(&r.origin, format_args!("CastRaysRequest.rays[{i}].origin"))?,
+                    direction: vec3(&r.direction, format_args!("CastRaysRequest.rays[{i}].direction"))?,
                     max_range: r.max_range,
                 })
             })
@@ -144,9 +144,10 @@ pub(super) fn service_err(e: ServiceError) -> Status {
     to_grpc(&e)
 }
 
-/// Exactly three values (x, y, z).
-pub(super) fn vec3(v: &[f64], field: &str) -> Result<[f64; 3], Status> {
-    <[f64; 3]>::try_from(v).map_err(|_| bad(field, format!("expected 3 values (x, y, z), got {}", v.len())))
+/// Exactly three values (x, y, z). `field` is formatted only for the error.
+pub(super) fn vec3(v: &[f64], field: impl std::fmt::Display) -> Result<[f64; 3], Status> {
+    <[f64; 3]>::try_from(v)
+        .map_err(|_| bad(&field.to_string(), format!("expected 3 values (x, y, z), got {}", v.len())))
 }
 
 /// Little-endian f32 triplets.
@@ -349,7 +350,7 @@ fn cast_rays_answer(
             RayHit::Clear => r.max_range,
             RayHit::Blocked { distance_m, .. } => distance_m + res * 3f64.sqrt(),
         };
-        snap.check_ray(r.origin, r.direction, reach, &format!("ray {i}")).map_err(service_err)?;
+        snap.check_ray(r.origin, r.direction, reach, format_args!("ray {i}")).map_err(service_err)?;
         results.push(match hit {
             RayHit::Clear => pb::RayResult { blocked: false, distance: r.max_range, ..Default::default() },
             RayHit::Blocked { cell, distance_m, estimate } => pb::RayResult {

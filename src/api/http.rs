@@ -471,7 +471,7 @@ async fn rays_query(State(st): State<AppState>, Path(map): Path<String>, body: B
             RayHit::Clear => r.max_range,
             RayHit::Blocked { distance_m, .. } => distance_m + snap.map.params().resolution_m * 3f64.sqrt(),
         };
-        snap.check_ray(r.origin, r.direction, reach, &format!("rays[{i}]"))?;
+        snap.check_ray(r.origin, r.direction, reach, format_args!("rays[{i}]"))?;
         results.push(match hit {
             RayHit::Clear => json!({"blocked": false, "verdict": "clear"}),
             RayHit::Blocked { cell, distance_m, estimate } => json!({"blocked": true, "verdict": "blocked",

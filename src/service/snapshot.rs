@@ -87,7 +87,7 @@ impl Snapshot {
         origin: [f64; 3],
         direction: [f64; 3],
         reach_m: f64,
-        what: &str,
+        what: impl std::fmt::Display,
     ) -> Result<(), ServiceError> {
         if self.corrupt.is_empty() {
             return Ok(());
@@ -97,7 +97,7 @@ impl Snapshot {
             return Ok(());
         }
         let to = [0, 1, 2].map(|i| origin[i] + direction[i] / norm * reach_m);
-        self.check_segment(origin, to, what)
+        self.check_segment(origin, to, &what.to_string())
     }
 
     /// DATA_LOSS when a corrupt block holds any cell with key in `[lo, hi]`.
