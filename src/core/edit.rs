@@ -83,6 +83,15 @@ impl BlockSink for MapEdit<'_> {
     fn add_delta(&mut self, delta: &ScanDelta, sign: i64) {
         MapEdit::add_delta(self, delta, sign);
     }
+
+    fn add_whole_block(&mut self, key: BlockKey, block: Arc<BlockEvidence>) {
+        if self.blocks.contains_key(&key) || self.base.block(key).is_some() {
+            self.add_block(key, &block, 1);
+        } else {
+            // New to both the edit and its base: taken as it is.
+            self.blocks.insert(key, block);
+        }
+    }
 }
 
 /// `map`'s block `key` (shared until written), or a zero block.
@@ -128,5 +137,30 @@ mod tests {
         edit.add_delta(&delta, 1);
         edit.add_delta(&delta, -1);
         assert!(edit.finish().is_empty());
+    }
+
+    #[test]
+    fn adding_whole_blocks_to_an_edit_sums_with_the_base_and_the_edit() {
+        let params = MapParams::default();
+        let mut integ = Integrator::new(params);
+        let pts: Vec<[f32; 3]> = (0..100).map(|i| [2.0, -0.5 + i as f32 * 0.01, 0.5]).collect();
+        let mut map = EvidenceMap::new(params);
+        integ.integrate(&mut map, &pts, [0.0, 0.0, 0.5], 1);
+        let before = map.clone();
+        let (in_base, new) = (map.block_keys_sorted()[0], BlockKey::new(900, 900, 900));
+        let block = Arc::new(map.block(in_base).unwrap().clone());
+        let mut edit = map.edit();
+        edit.add_whole_block(in_base, block.clone());
+        edit.add_whole_block(in_base, block.clone());
+        edit.add_whole_block(new, block.clone());
+        let blocks = edit.finish();
+        assert_eq!(map.block_keys_sorted(), before.block_keys_sorted(), "the map is untouched");
+        let mut tripled = (*block).clone();
+        tripled.add_scaled(&block, 1);
+        tripled.add_scaled(&block, 1);
+        let got: std::collections::BTreeMap<_, _> = blocks.into_iter().collect();
+        assert_eq!(got.len(), 2);
+        assert!(got[&in_base].as_deref() == Some(&tripled), "base + two additions");
+        assert!(got[&new].as_deref() == Some(&*block), "a new block is taken as it is");
     }
 }

@@ -101,12 +101,9 @@ pub trait BlockSink {
     /// Adds (`sign` ≥ 0) or subtracts (`sign` < 0) a scan's delta.
     fn add_delta(&mut self, delta: &ScanDelta, sign: i64);
 
-    /// Adds a whole block of evidence (another map's) to block `key`.
-    fn add_block(&mut self, key: BlockKey, block: Arc<BlockEvidence>) {
-        let mut mine = self.take_block(key);
-        Arc::make_mut(&mut mine).add_scaled(&block, 1);
-        self.put_block(key, mine);
-    }
+    /// Adds a whole block of evidence (another map's) to block `key`; a block the sink lacks
+    /// is taken as it is.
+    fn add_whole_block(&mut self, key: BlockKey, block: Arc<BlockEvidence>);
 }
 
 impl BlockSink for EvidenceMap {
@@ -122,7 +119,7 @@ impl BlockSink for EvidenceMap {
         self.apply(delta, sign);
     }
 
-    fn add_block(&mut self, key: BlockKey, block: Arc<BlockEvidence>) {
+    fn add_whole_block(&mut self, key: BlockKey, block: Arc<BlockEvidence>) {
         match self.blocks.get_mut(&key) {
             Some(s) => s.block_mut().add_scaled(&block, 1),
             None => self.insert_shared_block(key, block),
@@ -496,7 +493,7 @@ where
         }
         if failed.is_none() {
             for (key, slot) in own.blocks {
-                sink.add_block(key, slot.block);
+                sink.add_whole_block(key, slot.block);
             }
         }
     }
