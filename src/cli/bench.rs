@@ -162,8 +162,8 @@ fn ingest(a: IngestArgs) -> Result<()> {
         }
     }
     let [mut train_ms, mut scatter_ms] = phases_ms;
-    let phase =
-        [percentile(&mut train_ms, 0.5), percentile(&mut scatter_ms, 0.5), percentile(&mut merge_ms, 0.5)];
+    let phase = [percentile(&mut train_ms, 0.5), percentile(&mut scatter_ms, 0.5)];
+    let merge = percentile(&mut merge_ms, 0.5);
     let training_points_mean = pairs_in.0 as f64 / pairs_in.1.max(1) as f64;
     let points: usize = scans.iter().map(|s| s.points_world.len()).sum();
     let med = percentile(&mut per_scan_ms, 0.5);
@@ -180,20 +180,19 @@ fn ingest(a: IngestArgs) -> Result<()> {
             "range_mode": params.range_mode.as_str(),
             "training_points_per_scan_mean": training_points_mean,
             "phase_ms_median": {"training": phase[0], "evidence": phase[1]},
-            "merge_ms_median": phase[2],
+            "merge_ms_median": merge,
         });
         println!("{v}");
     } else {
         println!(
             "ingest {source}: {} scans × {} passes, {threads} worker(s) × {split} thread(s) per scan: per scan median {med:.3} ms, p90 {p90:.3} ms; \
              all scans median {total_med:.2} ms ({:.2} M raw points/s); per-scan medians: training {:.3} ms, \
-             evidence {:.3} ms ({training_points_mean:.0} training points per scan); adding the workers' maps {:.3} ms per pass",
+             evidence {:.3} ms ({training_points_mean:.0} training points per scan); adding the workers' maps {merge:.3} ms per pass",
             scans.len(),
             a.repeat.max(1),
             points_per_s / 1e6,
             phase[0],
             phase[1],
-            phase[2]
         );
     }
     Ok(())

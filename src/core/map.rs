@@ -285,7 +285,7 @@ impl EvidenceMap {
             return Err(diff);
         }
         for (key, b) in &other.blocks {
-            self.blocks.entry(*key).or_insert_with(Slot::zeroed).block_mut().add_scaled(&b.block, 1);
+            self.add_whole_block(*key, b.block.clone());
         }
         Ok(())
     }
@@ -483,21 +483,14 @@ where
             handles.into_iter().map(|h| h.join().unwrap_or_else(|e| std::panic::resume_unwind(e))).collect();
         (mine, theirs)
     });
-    let mut failed = mine.err();
-    for (own, done) in theirs {
-        if let Err(e) = done {
-            failed = Some(match failed {
-                Some(f) if f.0 < e.0 => f,
-                _ => e,
-            });
-        }
-        if failed.is_none() {
-            for (key, slot) in own.blocks {
-                sink.add_whole_block(key, slot.block);
-            }
-        }
+    let (maps, done): (Vec<EvidenceMap>, Vec<_>) = theirs.into_iter().unzip();
+    if let Some((_, e)) = std::iter::once(mine).chain(done).filter_map(Result::err).min_by_key(|(i, _)| *i) {
+        return Err(e);
     }
-    failed.map_or(Ok(()), |(_, e)| Err(e))
+    for (key, slot) in maps.into_iter().flat_map(|m| m.blocks) {
+        sink.add_whole_block(key, slot.block);
+    }
+    Ok(())
 }
 
 #[cfg(test)]

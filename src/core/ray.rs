@@ -308,15 +308,22 @@ impl VoxelWalk {
         self.first[axis] + n * self.delta[axis]
     }
 
-    /// The axis whose crossing at distance `t[axis]` comes first (x on ties, then y).
+    /// Which axis' crossing at distance `t[axis]` comes first (x on ties, then y), one flag
+    /// per axis.
+    #[inline(always)]
+    fn first_axes(t: [f64; 3]) -> [bool; 3] {
+        let x = (t[0] <= t[1]) & (t[0] <= t[2]);
+        let y = !x & (t[1] <= t[2]);
+        [x, y, !x & !y]
+    }
+
+    /// The axis [`Self::first_axes`] flags.
     #[inline(always)]
     fn first_axis(t: [f64; 3]) -> usize {
-        if (t[0] <= t[1]) & (t[0] <= t[2]) {
-            0
-        } else if t[1] <= t[2] {
-            1
-        } else {
-            2
+        match Self::first_axes(t) {
+            [true, _, _] => 0,
+            [_, true, _] => 1,
+            _ => 2,
         }
     }
 
@@ -334,9 +341,7 @@ impl VoxelWalk {
         let [t0, t1, t2] = self.next;
         // No array is indexed by the axis chosen and nothing branches on it (it changes from
         // step to step in no pattern a predictor could learn), so the state stays in registers.
-        let x = (t0 <= t1) & (t0 <= t2);
-        let y = !x & (t1 <= t2);
-        let z = !x & !y;
+        let [x, y, z] = Self::first_axes(self.next);
         let entry = (if x {
             t0
         } else if y {
