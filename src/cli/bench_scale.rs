@@ -162,11 +162,11 @@ fn query_rates(map: &EvidenceMap, room: &[SimScan]) -> (f64, f64) {
 
 /// RAM and disk bytes per cell of `map` (see the module docs).
 fn memory_of(map: &EvidenceMap) -> Result<Value> {
-    // Per block: the evidence, the Arc's two counters, and a hash-table slot (key, pointer and
-    // ray summary + one control byte) at hashbrown's worst load factor of 7/8 just after
-    // growing (1/2).
-    let slot = EvidenceMap::TABLE_ENTRY_BYTES + 1;
-    let per_block = std::mem::size_of::<BlockEvidence>() + 2 * std::mem::size_of::<usize>() + 2 * slot;
+    // Per block: the evidence, the Arc's two counters, and the block table's entry (key,
+    // pointer and ray summary) and slots at its worst load just after growing.
+    let per_block = std::mem::size_of::<BlockEvidence>()
+        + 2 * std::mem::size_of::<usize>()
+        + EvidenceMap::TABLE_BYTES_PER_BLOCK;
     let ram = (map.block_count() * per_block) as f64;
     let dir = std::env::temp_dir().join(format!("bgkmap-bench-scale-{}", std::process::id()));
     std::fs::create_dir_all(&dir)?;

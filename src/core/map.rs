@@ -6,12 +6,12 @@
 //! `α = α0 + σ0·A/2^F`, `β = β0 + σ0·B/2^F` (Eq. 1, 2, 7, 9). Cells that never received evidence
 //! (both sums zero) answer with the prior (p = 0.5).
 
+use super::block_table::BlockTable;
 use super::evidence::{BlockEvidence, BlockSummary, PairGeometry, ScanDelta, Scatter};
 use super::kernel::{FIXED_ONE, KernelTable};
 use super::key::{BlockKey, CellKey};
 use super::params::{MapParams, Thresholds};
 use super::training::{TrainingBuilder, TrainingSet};
-use rustc_hash::FxHashMap;
 use std::sync::{Arc, OnceLock};
 
 /// Free / occupied / unknown under a set of thresholds (Eq. 9).
@@ -90,6 +90,15 @@ pub(crate) fn zeroed_block() -> Arc<BlockEvidence> {
     Arc::new(BlockEvidence::ZERO)
 }
 
+/// A zero block shared by every caller on this thread (one per thread, so workers do not
+/// contend on its reference count): what a map entry holds while its block is taken out.
+fn placeholder_block() -> Arc<BlockEvidence> {
+    thread_local! {
+        static ZERO: Arc<BlockEvidence> = zeroed_block();
+    }
+    ZERO.with(Arc::clone)
+}
+
 /// Somewhere a scan's evidence can be added in place, block by block: the map itself or an
 /// edit of it. The fast evidence path takes each block it adds to out, changes it (copying it
 /// first only if a snapshot shares it) and puts it back, so no per-scan delta is built.
@@ -108,7 +117,13 @@ pub trait BlockSink {
 
 impl BlockSink for EvidenceMap {
     fn take_block(&mut self, key: BlockKey) -> Arc<BlockEvidence> {
-        self.blocks.remove(&key).map_or_else(zeroed_block, |s| s.block)
+        // The entry stays, holding a shared zero block until `put_block` returns the block: a
+        // block that is only updated costs two lookups and no change to the table's layout
+        // (removing and re-inserting moved another entry and its slot each time).
+        match self.blocks.get_mut(&key) {
+            Some(s) => std::mem::replace(&mut s.block, placeholder_block()),
+            None => zeroed_block(),
+        }
     }
 
     fn put_block(&mut self, key: BlockKey, block: Arc<BlockEvidence>) {
@@ -134,7 +149,7 @@ impl BlockSink for EvidenceMap {
 #[derive(Debug, Clone)]
 pub struct EvidenceMap {
     params: MapParams,
-    blocks: FxHashMap<BlockKey, Slot>,
+    blocks: BlockTable<Slot>,
 }
 
 /// A map block and its [`BlockSummary`], computed by the first reader that asks and dropped by
@@ -163,12 +178,13 @@ impl Slot {
 }
 
 impl EvidenceMap {
-    /// Bytes of one entry of the block table (key, block pointer, summary), for memory figures.
-    pub const TABLE_ENTRY_BYTES: usize = std::mem::size_of::<(BlockKey, Slot)>();
+    /// Bytes of block table per block (key, block pointer, summary and slots) at the table's
+    /// worst load, for memory figures.
+    pub const TABLE_BYTES_PER_BLOCK: usize = BlockTable::<Slot>::WORST_BYTES_PER_ENTRY;
 
     /// An empty map. `params` must be valid ([`MapParams::validate`]).
     pub fn new(params: MapParams) -> Self {
-        Self { params, blocks: FxHashMap::default() }
+        Self { params, blocks: BlockTable::default() }
     }
 
     pub fn params(&self) -> &MapParams {
@@ -185,6 +201,25 @@ impl EvidenceMap {
 
     pub fn block(&self, key: BlockKey) -> Option<&BlockEvidence> {
         self.blocks.get(&key).map(|s| &*s.block)
+    }
+
+    /// The blocks of a batch of keys into `out` (same length), their lookups staged so the
+    /// cache misses of the whole batch overlap: all table slots, then all entries (see
+    /// [`BlockTable`]).
+    pub fn blocks_of<'a>(&'a self, keys: &[Option<BlockKey>], out: &mut [Option<&'a BlockEvidence>]) {
+        const MAX: usize = 64;
+        assert!(keys.len() <= MAX && out.len() == keys.len(), "batches of at most {MAX} keys");
+        let mut hashes = [None; MAX];
+        for (h, k) in hashes.iter_mut().zip(keys) {
+            *h = k.map(|k| self.blocks.home(k));
+        }
+        let mut candidates = [None; MAX];
+        for (c, h) in candidates.iter_mut().zip(&hashes[..keys.len()]) {
+            *c = h.and_then(|h| self.blocks.candidate(h));
+        }
+        for ((o, k), c) in out.iter_mut().zip(keys).zip(&candidates) {
+            *o = k.and_then(|k| self.blocks.confirm(k, *c)).map(|s| &*s.block);
+        }
     }
 
     /// A block with its [`BlockSummary`] (computed now if no reader asked since it changed).
@@ -225,7 +260,7 @@ impl EvidenceMap {
     /// evidence are dropped, so removing a scan restores the map exactly.
     pub fn apply(&mut self, delta: &ScanDelta, sign: i64) {
         for (key, d, rows) in delta.iter() {
-            let blk = self.blocks.entry(key).or_insert_with(Slot::zeroed).block_mut();
+            let blk = self.blocks.get_or_insert_with(key, Slot::zeroed).block_mut();
             blk.add_delta(d, sign, rows);
             if sign < 0 && blk.is_empty() {
                 self.blocks.remove(&key);
@@ -284,7 +319,7 @@ impl EvidenceMap {
         if !diff.is_empty() {
             return Err(diff);
         }
-        for (key, b) in &other.blocks {
+        for (key, b) in other.blocks.iter() {
             self.add_whole_block(*key, b.block.clone());
         }
         Ok(())

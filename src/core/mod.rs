@@ -4,6 +4,7 @@
 //! Nothing here does I/O, spawns tasks or knows about a network transport. Evidence is integer
 //! fixed-point (see [`evidence`]), so every way of combining the same scans gives the same bits.
 
+pub mod block_table;
 pub mod edit;
 pub mod evidence;
 pub mod kernel;
