@@ -26,8 +26,8 @@
 //! profile of per-row bookkeeping (~45 instructions per pair). Window path: ~370k lanes per scan
 //! (64 per point, ~52% inside the ball) with the AVX2 lookups of [`super::simd`] adding straight
 //! into an `i32` brick. Whole-ingest profile (perf, `bench ingest`, AMD EPYC Zen 3, straight
-//! into the map, 1.22–1.32 ms per scan): the 64 lookups + adds ~27% (one 4-lane 64-bit gather
-//! per window row; gathers are slow on these CPUs), the training data's voxel table ~21% plus
+//! into the map, 1.22–1.32 ms per scan): the 64 lookups + adds ~27% (then one 4-lane 64-bit
+//! gather per window row; now scalar loads, see [`super::simd`]), the training data's voxel table ~21% plus
 //! ~7% for the rest of the training data, folding bricks into the map's blocks ~15% (about as
 //! many brick cells are folded as lanes added: ~119 buckets of ~48 points per scan, each
 //! brick 12³ cells per label), window placement ~9%, bucketing ~3%, new blocks and the hash
@@ -38,7 +38,10 @@
 //! folded row (an atomic compare-exchange each, 26% of the fold: now once per block region);
 //! a per-z mask of the brick rows windows touched, so a fold reads only those (4 interleaved
 //! runs, 3–13% slower: marking W rows per window costs more than the zero checks it saves), or
-//! only the y/z span of a bucket's windows (3 interleaved runs, no change).
+//! only the y/z span of a bucket's windows (3 interleaved runs, no change); interleaving the two
+//! halves of each bucket, so consecutive windows (scan-order neighbours) do not overlap in the
+//! brick and no row load waits on a partly overlapping store (8 interleaved runs, 2026-12-03: no
+//! gain; the stall after each gather was the cost, not store forwarding).
 //! Next steps: smaller bricks for buckets of few points (free samples are isolated), and
 //! evaluating only the row pairs inside the ball.
 
