@@ -54,14 +54,12 @@ pub struct BlockTable<V> {
     /// the first [`GROUP`] tags.
     tags: Vec<u8>,
     index: Vec<u32>,
-    /// log2 of the slot count (0 while there are none).
-    bits: u32,
     entries: Vec<(BlockKey, V)>,
 }
 
 impl<V> Default for BlockTable<V> {
     fn default() -> Self {
-        Self { tags: Vec::new(), index: Vec::new(), bits: 0, entries: Vec::new() }
+        Self { tags: Vec::new(), index: Vec::new(), entries: Vec::new() }
     }
 }
 
@@ -83,17 +81,22 @@ impl<V> BlockTable<V> {
         self.index.len().wrapping_sub(1)
     }
 
+    /// log2 of the slot count (at least 4 whenever there are slots; callers check for none).
+    #[inline(always)]
+    fn bits(&self) -> u32 {
+        self.index.len().trailing_zeros()
+    }
+
     /// The home slot of a hash.
     #[inline(always)]
     fn home_slot(&self, h: KeyHash) -> usize {
-        // `bits` ≥ 4 whenever there are slots; with none, every lookup sees an empty table.
-        (h.0 >> (64 - self.bits.max(1))) as usize & self.mask()
+        (h.0 >> (64 - self.bits().max(1))) as usize & self.mask()
     }
 
     /// The slot tag of a hash: never 0 (empty).
     #[inline(always)]
     fn tag(&self, h: KeyHash) -> u8 {
-        0x80 | (h.0 >> (57 - self.bits.min(57))) as u8 & 0x7F
+        0x80 | (h.0 >> (57 - self.bits().min(57))) as u8 & 0x7F
     }
 
     /// The slot holding `key`'s entry, if any.
@@ -138,24 +141,29 @@ impl<V> BlockTable<V> {
         }
     }
 
+    /// The index of `key`'s entry, if any.
+    #[inline]
+    fn find_entry(&self, key: BlockKey, h: KeyHash) -> Option<usize> {
+        self.find_slot(key, h).map(|i| self.index[i] as usize)
+    }
+
     #[inline]
     pub fn get(&self, key: &BlockKey) -> Option<&V> {
-        let i = self.find_slot(*key, KeyHash::of(*key))?;
-        Some(&self.entries[self.index[i] as usize].1)
+        let e = self.find_entry(*key, KeyHash::of(*key))?;
+        Some(&self.entries[e].1)
     }
 
     #[inline]
     pub fn get_mut(&mut self, key: &BlockKey) -> Option<&mut V> {
-        let i = self.find_slot(*key, KeyHash::of(*key))?;
-        let e = self.index[i] as usize;
+        let e = self.find_entry(*key, KeyHash::of(*key))?;
         Some(&mut self.entries[e].1)
     }
 
     /// The value of `key`, inserted from `make` if absent.
     pub fn get_or_insert_with(&mut self, key: BlockKey, make: impl FnOnce() -> V) -> &mut V {
         let h = KeyHash::of(key);
-        let e = match self.find_slot(key, h) {
-            Some(i) => self.index[i] as usize,
+        let e = match self.find_entry(key, h) {
+            Some(e) => e,
             None => self.push(key, h, make()),
         };
         &mut self.entries[e].1
@@ -164,11 +172,8 @@ impl<V> BlockTable<V> {
     /// Inserts or replaces; returns the value replaced.
     pub fn insert(&mut self, key: BlockKey, value: V) -> Option<V> {
         let h = KeyHash::of(key);
-        match self.find_slot(key, h) {
-            Some(i) => {
-                let e = self.index[i] as usize;
-                Some(std::mem::replace(&mut self.entries[e].1, value))
-            }
+        match self.find_entry(key, h) {
+            Some(e) => Some(std::mem::replace(&mut self.entries[e].1, value)),
             None => {
                 self.push(key, h, value);
                 None
@@ -212,7 +217,6 @@ impl<V> BlockTable<V> {
 
     fn grow(&mut self) {
         let n = (self.index.len() * 2).max(MIN_SLOTS);
-        self.bits = n.trailing_zeros();
         self.tags.clear();
         self.tags.resize(n + GROUP, 0);
         self.index.clear();

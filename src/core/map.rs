@@ -234,7 +234,7 @@ impl EvidenceMap {
         self.blocks.get(&key).map(|s| s.block.clone())
     }
 
-    /// Blocks in hash order (callers that emit anything sort first; see [`Self::block_keys_sorted`]).
+    /// Blocks in table order (callers that emit anything sort first; see [`Self::block_keys_sorted`]).
     pub fn blocks_unsorted(&self) -> impl Iterator<Item = (&BlockKey, &BlockEvidence)> {
         self.blocks.iter().map(|(k, s)| (k, &*s.block))
     }
