@@ -8,7 +8,7 @@ use super::ops::Op;
 use super::{Ack, Done, JournalStats, ServiceConfig, ServiceError, Shared, Snapshot};
 use crate::core::{BlockKey, EvidenceMap};
 use crate::store::{Change, DurableMap, Pending, Recovered, Retention, now_nanos};
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, VecDeque};
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, TryRecvError};
 use std::sync::{Arc, Mutex, PoisonError, RwLock};
@@ -42,11 +42,19 @@ pub(super) struct Writer {
     waiters: Vec<(Option<Done>, usize, bool)>,
     last_prune: Instant,
     retry: Duration,
-    /// Snapshots replaced while readers still held them. The writer frees each once it holds
-    /// the last reference, so a query never pays for freeing a whole map (thousands of block
-    /// reference counts and the block table: milliseconds on a large map).
+    /// Snapshots replaced while readers still held them, and the last one replaced. The writer
+    /// frees each once it holds the last reference, so a query never pays for freeing a whole
+    /// map (thousands of block reference counts and the block table: milliseconds on a large
+    /// map), or recycles it into the next snapshot ([`Self::recycled`]). The last one keeps
+    /// the old copies of the blocks one publish changed alive until the next publish.
     retired: Mutex<Vec<Arc<Snapshot>>>,
+    /// The last [`HISTORY`] publishes that moved the version: (from version, to version, the
+    /// blocks changed), oldest first, for [`Self::recycled`].
+    history: VecDeque<(u64, u64, Vec<BlockKey>)>,
 }
+
+/// Publishes remembered for recycling snapshots.
+const HISTORY: usize = 64;
 
 impl Writer {
     /// Replays the journaled scans of an opened map and sets up its shared state; a damaged
@@ -85,6 +93,8 @@ impl Writer {
         // map opens at (see the `feed` module).
         let version = map.version();
         let block_versions: BlockVersions = map.map().blocks_unsorted().map(|(k, _)| (*k, version)).collect();
+        // The first snapshot is the map as it is: changes count from here.
+        map.take_changes();
         let snapshot = Snapshot {
             version,
             map: map.map().clone(),
@@ -115,6 +125,7 @@ impl Writer {
             waiters,
             last_prune,
             retired: Mutex::new(Vec::new()),
+            history: VecDeque::new(),
             retry: config.write_retry,
         };
         Ok((shared, writer))
@@ -180,15 +191,13 @@ impl Writer {
                 self.shared.integration_micros.fetch_add(us, Ordering::Relaxed);
                 self.shared.faults.apply_ok();
                 self.shared.backlog.fetch_sub(self.pending.len(), Ordering::Relaxed);
-                let in_flight = self
-                    .pending
-                    .iter()
-                    .zip(&self.waiters)
-                    .filter(|(_, w)| w.2)
-                    .map(|(p, _)| p.source.as_str());
-                let first = change.version - self.pending.len() as u64;
-                let poses = self
-                    .pending
+                // Out of `self` while publishing, which takes the map's change log.
+                let (mut pending, waiters) =
+                    (std::mem::take(&mut self.pending), std::mem::take(&mut self.waiters));
+                let in_flight =
+                    pending.iter().zip(&waiters).filter(|(_, w)| w.2).map(|(p, _)| p.source.as_str());
+                let first = change.version - pending.len() as u64;
+                let poses = pending
                     .iter()
                     .zip(first + 1..)
                     .map(|(p, version)| ScanPose {
@@ -199,7 +208,8 @@ impl Writer {
                     })
                     .collect();
                 self.publish_applied(in_flight, poses);
-                self.pending.clear();
+                pending.clear();
+                (self.pending, self.waiters) = (pending, waiters);
                 for (done, dropped_points, _) in self.waiters.drain(..) {
                     if let Some(done) = done {
                         done(Ok(Ack {
@@ -232,28 +242,70 @@ impl Writer {
         }
     }
 
+    /// The newest retired snapshot no reader holds, brought up to the writer's map by the
+    /// blocks changed since its version ([`Self::history`]): the next snapshot's map and block
+    /// versions without copying the whole block table and version map (milliseconds per scan
+    /// on a large map, during which queries shared the cores with the copy). `None` when every
+    /// retired snapshot is still read, or the history does not reach back to it.
+    fn recycled(&mut self) -> Option<(EvidenceMap, BlockVersions)> {
+        let free = {
+            let mut retired = self.retired.lock().unwrap_or_else(PoisonError::into_inner);
+            let newest = retired.iter().rposition(|s| Arc::strong_count(s) == 1)?;
+            retired.remove(newest)
+        };
+        let snap = Arc::try_unwrap(free).ok()?;
+        let start = self.history.iter().position(|(from, _, _)| *from == snap.version)?;
+        let Snapshot { mut map, block_versions, .. } = snap;
+        let mut bv = Arc::try_unwrap(block_versions).unwrap_or_else(|shared| BlockVersions::clone(&shared));
+        let mut keys = Vec::new();
+        for (_, to, changed) in self.history.range(start..) {
+            bv.extend(changed.iter().map(|k| (*k, *to)));
+            keys.extend_from_slice(changed);
+        }
+        keys.sort_unstable();
+        keys.dedup();
+        map.copy_blocks_from(self.map.map(), &keys);
+        debug_assert!(map.shares_blocks_with(self.map.map()), "a recycled snapshot missed a change");
+        Some((map, bv))
+    }
+
     /// Publishes the map as it is now: a new snapshot, the journal's content and, when the
     /// version moved, a change-feed update.
-    pub(super) fn publish(&self) {
+    pub(super) fn publish(&mut self) {
         self.publish_applied(std::iter::empty(), Vec::new());
     }
 
     /// As [`Self::publish`], with the scans of `applied` sources (just integrated) no longer in
     /// flight and the `poses` of the scans just integrated.
-    fn publish_applied<'a>(&self, applied: impl Iterator<Item = &'a str>, poses: Vec<ScanPose>) {
+    fn publish_applied<'a>(&mut self, applied: impl Iterator<Item = &'a str>, poses: Vec<ScanPose>) {
         let old = self.shared.snapshot();
         let version = self.map.version();
-        let (block_versions, blocks) = if version > old.version {
-            let blocks = changed_blocks(&old.map, self.map.map());
-            let mut bv = BlockVersions::clone(&old.block_versions);
-            bv.extend(blocks.iter().map(|k| (*k, version)));
-            (Arc::new(bv), blocks)
+        let (map, block_versions, blocks) = if version > old.version {
+            let noted = self.map.take_changes();
+            let blocks = changed_blocks(&old.map, self.map.map(), noted);
+            self.history.push_back((old.version, version, blocks.clone()));
+            if self.history.len() > HISTORY {
+                self.history.pop_front();
+            }
+            let next_versions = || {
+                let mut bv = BlockVersions::clone(&old.block_versions);
+                bv.extend(blocks.iter().map(|k| (*k, version)));
+                bv
+            };
+            let (map, bv) = match self.recycled() {
+                Some((map, bv)) => {
+                    debug_assert!(bv == next_versions(), "a recycled snapshot's block versions went astray");
+                    (map, bv)
+                }
+                None => (self.map.map().clone(), next_versions()),
+            };
+            (map, Arc::new(bv), blocks)
         } else {
-            (old.block_versions.clone(), Vec::new())
+            (self.map.map().clone(), old.block_versions.clone(), Vec::new())
         };
         let snap = Snapshot {
             version,
-            map: self.map.map().clone(),
+            map,
             corrupt: old.corrupt.clone(),
             block_versions,
             history_from: old.history_from,
@@ -266,10 +318,11 @@ impl Writer {
         );
         {
             // Readers get snapshots only from `shared`, so a retired one whose only reference is
-            // ours can gain no other: dropping it here frees it on this thread.
+            // ours can gain no other: dropping it here frees it on this thread. The one just
+            // replaced stays even so, to be recycled by the next publish.
             let mut retired = self.retired.lock().unwrap_or_else(PoisonError::into_inner);
-            retired.push(replaced);
             retired.retain(|s| Arc::strong_count(s) > 1);
+            retired.push(replaced);
         }
         if version > from_version {
             // After the snapshot: a subscriber never hears of a version it cannot read.
@@ -314,8 +367,18 @@ impl Writer {
 
 /// The sorted keys of the blocks that differ between two versions of a map. A change installs
 /// new blocks for exactly the blocks whose evidence changed and shares the others, so comparing
-/// block identities finds them without comparing evidence.
-fn changed_blocks(old: &EvidenceMap, new: &EvidenceMap) -> Vec<BlockKey> {
+/// block identities finds them without comparing evidence. `noted`, when known, holds every key
+/// that may differ (sorted, from [`EvidenceMap::take_changes`]): only those are compared, so a
+/// scan costs what it changed, not what the map holds.
+fn changed_blocks(old: &EvidenceMap, new: &EvidenceMap, noted: Option<Vec<BlockKey>>) -> Vec<BlockKey> {
+    if let Some(mut keys) = noted {
+        keys.retain(|k| match (old.block(*k), new.block(*k)) {
+            (Some(o), Some(n)) => !std::ptr::eq(o, n),
+            (None, None) => false,
+            _ => true,
+        });
+        return keys;
+    }
     let mut keys: Vec<BlockKey> = new
         .blocks_unsorted()
         .filter(|(k, b)| old.block(**k).is_none_or(|o| !std::ptr::eq(o, *b)))

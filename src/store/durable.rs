@@ -173,6 +173,11 @@ impl DurableMap {
         &self.map
     }
 
+    /// The blocks that may have changed since the last call (see [`EvidenceMap::take_changes`]).
+    pub fn take_changes(&mut self) -> Option<Vec<crate::core::key::BlockKey>> {
+        self.map.take_changes()
+    }
+
     pub fn version(&self) -> u64 {
         self.version
     }
