@@ -262,12 +262,13 @@ impl DurableMap {
 
     /// Updates a row's status in the index (and the stored-bytes count).
     pub(super) fn set_status(&mut self, source: &str, seq: u64, status: ScanStatus) {
-        if let Some(e) = self.journal.get_mut(source, seq) {
-            if e.status.has_record() && !status.has_record() {
-                self.stored_bytes = self.stored_bytes.saturating_sub(e.record_bytes);
-            }
-            e.status = status;
+        if let Some(e) = self.journal.get(source, seq)
+            && e.status.has_record()
+            && !status.has_record()
+        {
+            self.stored_bytes = self.stored_bytes.saturating_sub(e.record_bytes);
         }
+        self.journal.set_status(source, seq, status);
     }
 
     /// Applies the retention policy at `now_nanos`: drops raw scans of applied scans that fall

@@ -73,6 +73,24 @@ pub struct SourceContent {
 #[derive(Debug, Clone, Default)]
 pub struct JournalIndex {
     sources: BTreeMap<String, BTreeMap<u64, JournalEntry>>,
+    /// Per source, the status counts of [`Self::content`], kept up to date by every change of
+    /// a row's status: the server publishes the content after every scan, and counting a
+    /// long-running map's whole journal each time grew with every scan ever received.
+    counts: BTreeMap<String, SourceContent>,
+}
+
+/// Adds (`n` = 1) or takes away (`n` = −1) one row of `status` from `c`.
+fn tally(c: &mut SourceContent, status: ScanStatus, n: i64) {
+    let add = |v: &mut u64| *v = v.wrapping_add_signed(n);
+    match status {
+        ScanStatus::Journaled => add(&mut c.pending),
+        ScanStatus::Applied => add(&mut c.applied),
+        ScanStatus::Pruned => {
+            add(&mut c.applied);
+            add(&mut c.pruned);
+        }
+        ScanStatus::Retracted => add(&mut c.retracted),
+    }
 }
 
 impl JournalIndex {
@@ -114,15 +132,34 @@ impl JournalIndex {
     }
 
     pub fn insert(&mut self, source: String, seq: u64, entry: JournalEntry) {
-        self.sources.entry(source).or_default().insert(seq, entry);
+        let c = self.counts.entry(source.clone()).or_default();
+        tally(c, entry.status, 1);
+        if let Some(old) = self.sources.entry(source).or_default().insert(seq, entry) {
+            tally(c, old.status, -1);
+        }
+    }
+
+    /// Sets a row's status; false if there is no such row.
+    pub fn set_status(&mut self, source: &str, seq: u64, status: ScanStatus) -> bool {
+        let Some(e) = self.sources.get_mut(source).and_then(|m| m.get_mut(&seq)) else { return false };
+        let c = self.counts.entry(source.to_string()).or_default();
+        tally(c, e.status, -1);
+        tally(c, status, 1);
+        e.status = status;
+        true
+    }
+
+    /// Sets a row's raw-scan size and checksum (a re-posed scan's new record); returns the old
+    /// size, `None` if there is no such row.
+    pub fn set_record(&mut self, source: &str, seq: u64, bytes: u64, crc32: u32) -> Option<u64> {
+        let e = self.sources.get_mut(source)?.get_mut(&seq)?;
+        let old = e.record_bytes;
+        (e.record_bytes, e.crc32) = (bytes, crc32);
+        Some(old)
     }
 
     pub fn get(&self, source: &str, seq: u64) -> Option<&JournalEntry> {
         self.sources.get(source)?.get(&seq)
-    }
-
-    pub fn get_mut(&mut self, source: &str, seq: u64) -> Option<&mut JournalEntry> {
-        self.sources.get_mut(source)?.get_mut(&seq)
     }
 
     pub fn contains(&self, source: &str, seq: u64) -> bool {
@@ -152,23 +189,12 @@ impl JournalIndex {
         self.iter().filter(|(_, _, e)| e.status.has_record()).map(|(_, _, e)| e.record_bytes).sum()
     }
 
-    /// Counts per source.
+    /// Counts per source (in time of the number of sources, not of rows).
     pub fn content(&self) -> BTreeMap<String, SourceContent> {
         self.sources
             .iter()
             .map(|(source, seqs)| {
-                let mut c = SourceContent::default();
-                for e in seqs.values() {
-                    match e.status {
-                        ScanStatus::Journaled => c.pending += 1,
-                        ScanStatus::Applied => c.applied += 1,
-                        ScanStatus::Pruned => {
-                            c.applied += 1;
-                            c.pruned += 1;
-                        }
-                        ScanStatus::Retracted => c.retracted += 1,
-                    }
-                }
+                let mut c = self.counts.get(source).cloned().unwrap_or_default();
                 if let (Some((lo, _)), Some((hi, _))) = (seqs.first_key_value(), seqs.last_key_value()) {
                     c.highest_seq = Some(*hi);
                     c.gaps = (hi - lo + 1).saturating_sub(seqs.len() as u64);
@@ -176,5 +202,56 @@ impl JournalIndex {
                 (source.clone(), c)
             })
             .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    /// The counts kept up to date row by row equal a count of every row, after any sequence of
+    /// inserts (new rows and replaced ones) and status changes.
+    #[test]
+    fn kept_counts_equal_a_recount() {
+        let statuses =
+            [ScanStatus::Journaled, ScanStatus::Applied, ScanStatus::Pruned, ScanStatus::Retracted];
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        let mut index = JournalIndex::default();
+        for step in 0..3000 {
+            let source = ["a", "b", "c"][rng.random_range(0..3)].to_string();
+            let seq = rng.random_range(0..200u64);
+            let status = statuses[rng.random_range(0..4)];
+            if rng.random_bool(0.5) {
+                let entry = JournalEntry {
+                    id: step,
+                    stamp_nanos: 0,
+                    received_nanos: 0,
+                    status,
+                    record_bytes: 10,
+                    crc32: 0,
+                };
+                index.insert(source, seq, entry);
+            } else {
+                let had = index.contains(&source, seq);
+                assert_eq!(index.set_status(&source, seq, status), had);
+            }
+            if step % 100 == 0 {
+                let mut recount: BTreeMap<String, SourceContent> = BTreeMap::new();
+                for (s, _, e) in index.iter() {
+                    tally(recount.entry(s.to_string()).or_default(), e.status, 1);
+                }
+                let kept = index.content();
+                for (s, c) in &recount {
+                    let k = &kept[s];
+                    assert_eq!(
+                        (k.applied, k.pending, k.pruned, k.retracted),
+                        (c.applied, c.pending, c.pruned, c.retracted),
+                        "source {s} at step {step}"
+                    );
+                }
+                assert_eq!(kept.len(), recount.len());
+            }
+        }
     }
 }

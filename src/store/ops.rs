@@ -214,9 +214,8 @@ impl DurableMap {
         self.map.commit_edit(blocks);
         self.version = version;
         for ((s, q), _, r, crc) in records {
-            if let Some(e) = self.journal.get_mut(&s, q) {
-                self.stored_bytes = self.stored_bytes - e.record_bytes + r.len() as u64;
-                (e.record_bytes, e.crc32) = (r.len() as u64, crc);
+            if let Some(old) = self.journal.set_record(&s, q, r.len() as u64, crc) {
+                self.stored_bytes = self.stored_bytes - old + r.len() as u64;
             }
         }
         Ok(change)
