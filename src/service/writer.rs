@@ -51,6 +51,10 @@ pub(super) struct Writer {
     /// The last [`HISTORY`] publishes that moved the version: (from version, to version, the
     /// blocks changed), oldest first, for [`Self::recycled`].
     history: VecDeque<(u64, u64, Vec<BlockKey>)>,
+    /// Snapshots at or below this version are not recycled: a publish that did not move the
+    /// version made a second snapshot of that version, and what changed between the two (if
+    /// anything) is in no history entry.
+    recycle_above: u64,
 }
 
 /// Publishes remembered for recycling snapshots.
@@ -126,6 +130,7 @@ impl Writer {
             last_prune,
             retired: Mutex::new(Vec::new()),
             history: VecDeque::new(),
+            recycle_above: 0,
             retry: config.write_retry,
         };
         Ok((shared, writer))
@@ -253,7 +258,7 @@ impl Writer {
             let newest = retired.iter().rposition(|s| Arc::strong_count(s) == 1)?;
             retired.remove(newest)
         };
-        let snap = Arc::try_unwrap(free).ok()?;
+        let snap = Arc::try_unwrap(free).ok().filter(|s| s.version > self.recycle_above)?;
         let start = self.history.iter().position(|(from, _, _)| *from == snap.version)?;
         let Snapshot { mut map, block_versions, .. } = snap;
         let mut bv = Arc::try_unwrap(block_versions).unwrap_or_else(|shared| BlockVersions::clone(&shared));
@@ -301,6 +306,8 @@ impl Writer {
             };
             (map, Arc::new(bv), blocks)
         } else {
+            self.history.clear();
+            self.recycle_above = version;
             (self.map.map().clone(), old.block_versions.clone(), Vec::new())
         };
         let snap = Snapshot {
