@@ -117,9 +117,10 @@ pub trait BlockSink {
 
 impl BlockSink for EvidenceMap {
     fn take_block(&mut self, key: BlockKey) -> Arc<BlockEvidence> {
-        // The entry stays, holding a shared zero block until `put_block` returns the block: a
-        // block that is only updated costs two lookups and no change to the table's layout
-        // (removing and re-inserting moved another entry and its slot each time).
+        // `put_block` notes the change. The entry stays, holding a shared zero block until
+        // `put_block` returns the block: a block that is only updated costs two lookups and no
+        // change to the table's layout (removing and re-inserting moved another entry and its
+        // slot each time).
         match self.blocks.get_mut(&key) {
             Some(s) => std::mem::replace(&mut s.block, placeholder_block()),
             None => zeroed_block(),
@@ -135,9 +136,11 @@ impl BlockSink for EvidenceMap {
     }
 
     fn add_whole_block(&mut self, key: BlockKey, block: Arc<BlockEvidence>) {
-        self.changes.note(key);
         match self.blocks.get_mut(&key) {
-            Some(s) => s.block_mut().add_scaled(&block, 1),
+            Some(s) => {
+                self.changes.note(key);
+                s.block_mut().add_scaled(&block, 1);
+            }
             None => self.insert_shared_block(key, block),
         }
     }

@@ -51,10 +51,6 @@ pub(super) struct Writer {
     /// The last [`HISTORY`] publishes that moved the version: (from version, to version, the
     /// blocks changed), oldest first, for [`Self::recycled`].
     history: VecDeque<(u64, u64, Vec<BlockKey>)>,
-    /// Snapshots at or below this version are not recycled: a publish that did not move the
-    /// version made a second snapshot of that version, and what changed between the two (if
-    /// anything) is in no history entry.
-    recycle_above: u64,
 }
 
 /// Publishes remembered for recycling snapshots.
@@ -130,7 +126,6 @@ impl Writer {
             last_prune,
             retired: Mutex::new(Vec::new()),
             history: VecDeque::new(),
-            recycle_above: 0,
             retry: config.write_retry,
         };
         Ok((shared, writer))
@@ -258,7 +253,7 @@ impl Writer {
             let newest = retired.iter().rposition(|s| Arc::strong_count(s) == 1)?;
             retired.remove(newest)
         };
-        let snap = Arc::try_unwrap(free).ok().filter(|s| s.version > self.recycle_above)?;
+        let snap = Arc::try_unwrap(free).ok()?;
         let start = self.history.iter().position(|(from, _, _)| *from == snap.version)?;
         let Snapshot { mut map, block_versions, .. } = snap;
         let mut bv = Arc::try_unwrap(block_versions).unwrap_or_else(|shared| BlockVersions::clone(&shared));
@@ -274,47 +269,39 @@ impl Writer {
         Some((map, bv))
     }
 
-    /// Publishes the map as it is now: a new snapshot, the journal's content and, when the
-    /// version moved, a change-feed update.
+    /// Publishes the map as it is now: the journal's content and, when the version moved, a new
+    /// snapshot and a change-feed update.
     pub(super) fn publish(&mut self) {
         self.publish_applied(std::iter::empty(), Vec::new());
     }
 
-    /// As [`Self::publish`], with the scans of `applied` sources (just integrated) no longer in
-    /// flight and the `poses` of the scans just integrated.
-    fn publish_applied<'a>(&mut self, applied: impl Iterator<Item = &'a str>, poses: Vec<ScanPose>) {
-        let old = self.shared.snapshot();
+    /// Replaces the snapshot `old` by one of the map's new version, retires `old` and tells the
+    /// change feed which blocks changed and where the scans `poses` were taken.
+    fn publish_snapshot(&mut self, old: Arc<Snapshot>, poses: Vec<ScanPose>) {
         let version = self.map.version();
-        let (map, block_versions, blocks) = if version > old.version {
-            let noted = self.map.take_changes();
-            let blocks = changed_blocks(&old.map, self.map.map(), noted);
-            self.history.push_back((old.version, version, blocks.clone()));
-            if self.history.len() > HISTORY {
-                self.history.pop_front();
+        let noted = self.map.take_changes();
+        let blocks = changed_blocks(&old.map, self.map.map(), noted);
+        self.history.push_back((old.version, version, blocks.clone()));
+        if self.history.len() > HISTORY {
+            self.history.pop_front();
+        }
+        let next_versions = || {
+            let mut bv = BlockVersions::clone(&old.block_versions);
+            bv.extend(blocks.iter().map(|k| (*k, version)));
+            bv
+        };
+        let (map, block_versions) = match self.recycled() {
+            Some((map, bv)) => {
+                debug_assert!(bv == next_versions(), "a recycled snapshot's block versions went astray");
+                (map, bv)
             }
-            let next_versions = || {
-                let mut bv = BlockVersions::clone(&old.block_versions);
-                bv.extend(blocks.iter().map(|k| (*k, version)));
-                bv
-            };
-            let (map, bv) = match self.recycled() {
-                Some((map, bv)) => {
-                    debug_assert!(bv == next_versions(), "a recycled snapshot's block versions went astray");
-                    (map, bv)
-                }
-                None => (self.map.map().clone(), next_versions()),
-            };
-            (map, Arc::new(bv), blocks)
-        } else {
-            self.history.clear();
-            self.recycle_above = version;
-            (self.map.map().clone(), old.block_versions.clone(), Vec::new())
+            None => (self.map.map().clone(), next_versions()),
         };
         let snap = Snapshot {
             version,
             map,
             corrupt: old.corrupt.clone(),
-            block_versions,
+            block_versions: Arc::new(block_versions),
             history_from: old.history_from,
         };
         let from_version = old.version;
@@ -331,11 +318,22 @@ impl Writer {
             retired.retain(|s| Arc::strong_count(s) > 1);
             retired.push(replaced);
         }
-        if version > from_version {
-            // After the snapshot: a subscriber never hears of a version it cannot read.
-            let kind = UpdateKind::Live;
-            let update = MapUpdate { kind, from_version, version, blocks, poses, reset: false };
-            self.shared.feed.publish(update);
+        // After the snapshot: a subscriber never hears of a version it cannot read.
+        let kind = UpdateKind::Live;
+        let update = MapUpdate { kind, from_version, version, blocks, poses, reset: false };
+        self.shared.feed.publish(update);
+    }
+
+    /// As [`Self::publish`], with the scans of `applied` sources (just integrated) no longer in
+    /// flight and the `poses` of the scans just integrated.
+    fn publish_applied<'a>(&mut self, applied: impl Iterator<Item = &'a str>, poses: Vec<ScanPose>) {
+        let old = self.shared.snapshot();
+        if self.map.version() > old.version {
+            self.publish_snapshot(old, poses);
+        } else {
+            // Blocks change only with the version (every store commit moves it), so the
+            // snapshot readers have is still the map: it stays.
+            debug_assert!(old.map.shares_blocks_with(self.map.map()), "blocks changed without a new version");
         }
         let content = Arc::new(self.map.journal().content());
         let mut st = super::lock(&self.shared.stats);

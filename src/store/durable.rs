@@ -11,7 +11,7 @@ use super::file::{Commit, MapFile};
 use super::journal::{JournalEntry, JournalIndex, ScanStatus};
 use super::lock::MapLock;
 use super::reader::{CorruptBlock, bad_record, missing_record};
-use crate::core::{BlockSink, EvidenceMap, Integrator, RawScan, integrate_parallel};
+use crate::core::{BlockKey, BlockSink, EvidenceMap, Integrator, RawScan, integrate_parallel};
 use std::path::Path;
 
 /// How long raw scans stay in the journal once their evidence is applied.
@@ -174,7 +174,7 @@ impl DurableMap {
     }
 
     /// The blocks that may have changed since the last call (see [`EvidenceMap::take_changes`]).
-    pub fn take_changes(&mut self) -> Option<Vec<crate::core::key::BlockKey>> {
+    pub fn take_changes(&mut self) -> Option<Vec<BlockKey>> {
         self.map.take_changes()
     }
 
@@ -262,13 +262,12 @@ impl DurableMap {
 
     /// Updates a row's status in the index (and the stored-bytes count).
     pub(super) fn set_status(&mut self, source: &str, seq: u64, status: ScanStatus) {
-        if let Some(e) = self.journal.get(source, seq)
-            && e.status.has_record()
+        if let Some(old) = self.journal.set_status(source, seq, status)
+            && old.status.has_record()
             && !status.has_record()
         {
-            self.stored_bytes = self.stored_bytes.saturating_sub(e.record_bytes);
+            self.stored_bytes = self.stored_bytes.saturating_sub(old.record_bytes);
         }
-        self.journal.set_status(source, seq, status);
     }
 
     /// Applies the retention policy at `now_nanos`: drops raw scans of applied scans that fall

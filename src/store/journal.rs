@@ -72,11 +72,16 @@ pub struct SourceContent {
 /// Every journal row of a map, by source and seq.
 #[derive(Debug, Clone, Default)]
 pub struct JournalIndex {
-    sources: BTreeMap<String, BTreeMap<u64, JournalEntry>>,
-    /// Per source, the status counts of [`Self::content`], kept up to date by every change of
-    /// a row's status: the server publishes the content after every scan, and counting a
-    /// long-running map's whole journal each time grew with every scan ever received.
-    counts: BTreeMap<String, SourceContent>,
+    sources: BTreeMap<String, SourceRows>,
+}
+
+/// One source's rows by seq, and their status counts for [`JournalIndex::content`], kept up to
+/// date by every change of a row's status: the server publishes the content after every scan,
+/// and counting a long-running map's whole journal each time grew with every scan ever received.
+#[derive(Debug, Clone, Default)]
+struct SourceRows {
+    rows: BTreeMap<u64, JournalEntry>,
+    counts: SourceContent,
 }
 
 /// Adds (`n` = 1) or takes away (`n` = −1) one row of `status` from `c`.
@@ -132,34 +137,35 @@ impl JournalIndex {
     }
 
     pub fn insert(&mut self, source: String, seq: u64, entry: JournalEntry) {
-        let c = self.counts.entry(source.clone()).or_default();
-        tally(c, entry.status, 1);
-        if let Some(old) = self.sources.entry(source).or_default().insert(seq, entry) {
-            tally(c, old.status, -1);
+        let s = self.sources.entry(source).or_default();
+        tally(&mut s.counts, entry.status, 1);
+        if let Some(old) = s.rows.insert(seq, entry) {
+            tally(&mut s.counts, old.status, -1);
         }
     }
 
-    /// Sets a row's status; false if there is no such row.
-    pub fn set_status(&mut self, source: &str, seq: u64, status: ScanStatus) -> bool {
-        let Some(e) = self.sources.get_mut(source).and_then(|m| m.get_mut(&seq)) else { return false };
-        let c = self.counts.entry(source.to_string()).or_default();
-        tally(c, e.status, -1);
-        tally(c, status, 1);
+    /// Sets a row's status; returns the row as it was, `None` if there is no such row.
+    pub fn set_status(&mut self, source: &str, seq: u64, status: ScanStatus) -> Option<JournalEntry> {
+        let s = self.sources.get_mut(source)?;
+        let e = s.rows.get_mut(&seq)?;
+        let old = *e;
+        tally(&mut s.counts, old.status, -1);
+        tally(&mut s.counts, status, 1);
         e.status = status;
-        true
+        Some(old)
     }
 
     /// Sets a row's raw-scan size and checksum (a re-posed scan's new record); returns the old
     /// size, `None` if there is no such row.
     pub fn set_record(&mut self, source: &str, seq: u64, bytes: u64, crc32: u32) -> Option<u64> {
-        let e = self.sources.get_mut(source)?.get_mut(&seq)?;
+        let e = self.sources.get_mut(source)?.rows.get_mut(&seq)?;
         let old = e.record_bytes;
         (e.record_bytes, e.crc32) = (bytes, crc32);
         Some(old)
     }
 
     pub fn get(&self, source: &str, seq: u64) -> Option<&JournalEntry> {
-        self.sources.get(source)?.get(&seq)
+        self.sources.get(source)?.rows.get(&seq)
     }
 
     pub fn contains(&self, source: &str, seq: u64) -> bool {
@@ -168,16 +174,16 @@ impl JournalIndex {
 
     /// Every row, by source then seq.
     pub fn iter(&self) -> impl Iterator<Item = (&str, u64, &JournalEntry)> {
-        self.sources.iter().flat_map(|(s, m)| m.iter().map(move |(q, e)| (s.as_str(), *q, e)))
+        self.sources.iter().flat_map(|(s, m)| m.rows.iter().map(move |(q, e)| (s.as_str(), *q, e)))
     }
 
     /// The rows of one source.
     pub fn of_source(&self, source: &str) -> impl Iterator<Item = (u64, &JournalEntry)> {
-        self.sources.get(source).into_iter().flat_map(|m| m.iter().map(|(q, e)| (*q, e)))
+        self.sources.get(source).into_iter().flat_map(|m| m.rows.iter().map(|(q, e)| (*q, e)))
     }
 
     pub fn len(&self) -> usize {
-        self.sources.values().map(BTreeMap::len).sum()
+        self.sources.values().map(|s| s.rows.len()).sum()
     }
 
     pub fn is_empty(&self) -> bool {
@@ -193,8 +199,8 @@ impl JournalIndex {
     pub fn content(&self) -> BTreeMap<String, SourceContent> {
         self.sources
             .iter()
-            .map(|(source, seqs)| {
-                let mut c = self.counts.get(source).cloned().unwrap_or_default();
+            .map(|(source, s)| {
+                let (mut c, seqs) = (s.counts.clone(), &s.rows);
                 if let (Some((lo, _)), Some((hi, _))) = (seqs.first_key_value(), seqs.last_key_value()) {
                     c.highest_seq = Some(*hi);
                     c.gaps = (hi - lo + 1).saturating_sub(seqs.len() as u64);
@@ -234,7 +240,7 @@ mod tests {
                 index.insert(source, seq, entry);
             } else {
                 let had = index.contains(&source, seq);
-                assert_eq!(index.set_status(&source, seq, status), had);
+                assert_eq!(index.set_status(&source, seq, status).is_some(), had);
             }
             if step % 100 == 0 {
                 let mut recount: BTreeMap<String, SourceContent> = BTreeMap::new();
