@@ -41,21 +41,31 @@ async fn concurrent_queries_see_whole_scans_only() {
         .create_map(pb::CreateMapRequest { map: "m".into(), params: Some(pb::MapParams::default()) })
         .await
         .unwrap();
-    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    use std::sync::Arc;
+    use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+    let stop = Arc::new(AtomicBool::new(false));
+    // The newest version any reader has been answered at, plus one (0: no answer yet).
+    let seen_upto = Arc::new(AtomicU64::new(0));
     let mut readers = Vec::new();
     for _ in 0..4 {
-        let (url, xyz, stop) = (server.grpc_url(), packed(&probe), stop.clone());
+        let (url, xyz, stop, seen_upto) =
+            (server.grpc_url(), packed(&probe), stop.clone(), seen_upto.clone());
         readers.push(tokio::spawn(async move {
             let mut c = MapServiceClient::connect(url).await.unwrap();
             let mut seen = Vec::new();
-            while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+            while !stop.load(Ordering::Relaxed) {
                 let req = pb::QueryPointsRequest { map: "m".into(), xyz_f32: xyz.clone(), thresholds: None };
                 let r = c.query_points(req).await.unwrap().into_inner();
+                seen_upto.fetch_max(r.version + 1, Ordering::Relaxed);
                 seen.push((r.version, r.probability));
             }
             seen
         }));
     }
+    // One stream of scans, each sent only once a reader has been answered at the version before
+    // it: the readers then query while every scan is applied, however fast the server is (a
+    // stream sent all at once was applied before a slow machine's readers asked twice).
+    let (tx, rx) = tokio::sync::mpsc::channel(1);
     let requests: Vec<pb::InsertScanRequest> = scans
         .iter()
         .enumerate()
@@ -65,9 +75,27 @@ async fn concurrent_queries_see_whole_scans_only() {
             wait_applied: true,
         })
         .collect();
-    let summary = client.insert_scans(tokio_stream::iter(requests)).await.unwrap().into_inner();
+    let feeder = {
+        let seen_upto = seen_upto.clone();
+        tokio::spawn(async move {
+            for (version, request) in requests.into_iter().enumerate() {
+                let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+                while seen_upto.load(Ordering::Relaxed) <= version as u64 {
+                    assert!(
+                        std::time::Instant::now() < deadline,
+                        "no reader was answered at version {version}"
+                    );
+                    tokio::time::sleep(std::time::Duration::from_millis(1)).await;
+                }
+                tx.send(request).await.unwrap();
+            }
+        })
+    };
+    let summary =
+        client.insert_scans(tokio_stream::wrappers::ReceiverStream::new(rx)).await.unwrap().into_inner();
+    feeder.await.unwrap();
     assert_eq!(summary.applied, scans.len() as u64);
-    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    stop.store(true, Ordering::Relaxed);
     let mut versions = std::collections::BTreeSet::new();
     let mut total = 0;
     for r in readers {
@@ -81,6 +109,10 @@ async fn concurrent_queries_see_whole_scans_only() {
         }
     }
     assert!(total >= 4, "readers answered {total} times");
-    assert!(versions.len() >= 2, "readers saw versions {versions:?}: queries did not overlap ingest");
+    // The feeder waited for each of these, so this holds unless an answer went missing.
+    assert!(
+        (0..scans.len() as u64).all(|v| versions.contains(&v)),
+        "readers saw versions {versions:?}: queries did not overlap ingest"
+    );
     assert_eq!(server.terminate().code(), Some(0));
 }
