@@ -56,7 +56,7 @@ impl TrainingSet {
 /// samples probe the same cache lines: training 0.46 → 0.71 ms per sample scan (eight
 /// interleaved runs), because the group runs overlap and linear probing then walks long chains.
 ///
-/// Kept (2026-12-03): points go in by rounds of [`ADD_BATCH`] whose home slots are prefetched
+/// Kept (2026-12-03): points go in by rounds of 32 whose home slots are prefetched
 /// first, and a slot holds its key, so a probe is one load where it was two. A dense 64-beam
 /// scan's table is megabytes; its training went from 70–86 to 33–35 ms per scan, the sample
 /// scans' from 0.49 to 0.40 ms (`bgkmap bench ingest`, same bits). Emptying a table at least
