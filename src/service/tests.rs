@@ -264,6 +264,44 @@ fn source_stats_count_gaps_and_survive_restart() {
     assert!(info.journal_bytes > 0);
 }
 
+/// A journal pruned after every scan publishes without a new version each time: the snapshot
+/// readers have stays (its blocks are the map's; nothing is cloned), and every later snapshot,
+/// recycled or not, is still exactly the map of its version. (Debug builds also check that the kept snapshot shares
+/// every block with the writer's map.)
+#[test]
+fn publishes_that_do_not_move_the_version_keep_snapshots_exact() {
+    let dir = tempfile::tempdir().unwrap();
+    let config =
+        ServiceConfig { retention: crate::store::Retention::MaxBytes(1), ..ServiceConfig::default() };
+    let svc = MapService::open(dir.path(), config).unwrap();
+    svc.create_map("m", MapParams::default()).unwrap();
+    let scans = sim_scans(6);
+    let mut held = Vec::new();
+    for (i, s) in scans.iter().enumerate() {
+        assert!(svc.insert_scan_blocking("m", s.clone()).unwrap().applied);
+        // The scan's snapshot is published before the scan is acknowledged.
+        let applied = svc.snapshot("m").unwrap();
+        // The prune of this scan's raw data is published without a new version.
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(30);
+        while svc.map_info("m").unwrap().sources["robot1"].pruned <= i as u64 {
+            assert!(std::time::Instant::now() < deadline, "scan {} was never pruned", i + 1);
+            std::thread::sleep(std::time::Duration::from_millis(2));
+        }
+        let snap = svc.snapshot("m").unwrap();
+        assert!(Arc::ptr_eq(&snap, &applied), "the prune after scan {} replaced the snapshot", i + 1);
+        assert_eq!(snap.version, i as u64 + 1);
+        assert!(same(&snap.map, &offline(&scans[..=i])), "snapshot after scan {} and its prune", i + 1);
+        if i % 2 == 0 {
+            held.push(snap);
+        }
+    }
+    // The feed names each scan's blocks once, under the scan's version.
+    let update = svc.changes_since("m", 0, None).unwrap();
+    assert_eq!(update.version, scans.len() as u64);
+    assert_eq!(update.blocks, offline(&scans).block_keys_sorted());
+    drop(held);
+}
+
 /// The writer recycles a retired snapshot into the next one, bringing its map up to date with
 /// the blocks changed since: whatever snapshots readers hold meanwhile (so some recycled ones
 /// are several publishes old), every snapshot is exactly the map of its version, also after a
