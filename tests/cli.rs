@@ -52,6 +52,25 @@ fn export_formats_bt_ply_box_and_out() {
     let rows = parse_csv(&csv);
     assert!(rows.len() > 1000);
 
+    // A reader that stops early (`| head -1`) is not an error: exit 0 and nothing on stderr.
+    {
+        use std::io::BufRead;
+        let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_bgkmap"))
+            .current_dir(dir)
+            .args(["export", "map.bgkmap", "--format", "csv"])
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        let mut first = String::new();
+        std::io::BufReader::new(child.stdout.take().unwrap()).read_line(&mut first).unwrap();
+        assert_eq!(first.trim_end(), "x,y,z,size,probability,variance");
+        assert!(csv.len() > 1 << 20, "the export must outgrow the pipe's buffer for this test");
+        let out = child.wait_with_output().unwrap();
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(out.status.success() && stderr.is_empty(), "{:?}: {stderr}", out.status);
+    }
+
     // --out writes the same bytes as stdout.
     run_ok(dir, ["export", "map.bgkmap", "--format", "csv", "--out", "map.csv"]);
     assert!(std::fs::read(dir.join("map.csv")).unwrap() == csv.as_bytes(), "--out CSV differs from stdout");

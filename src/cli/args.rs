@@ -169,13 +169,18 @@ pub fn load_raw_scan(path: &Path, args: &ScanArgs) -> Result<(crate::core::RawSc
     Ok((raw, cloud.dropped_nonfinite))
 }
 
-/// Writes `bytes` to `path` atomically (temporary sibling + rename), or to stdout for `None`.
+/// Writes `bytes` to `path` atomically (temporary sibling + rename), or to stdout for `None`
+/// (a reader that closes the pipe early, as `head` does, is not an error).
 pub fn write_output(path: Option<&PathBuf>, bytes: &[u8]) -> Result<()> {
     use std::io::Write;
     match path {
         None => {
             let mut out = std::io::stdout().lock();
-            out.write_all(bytes).and_then(|()| out.flush()).context("writing to stdout")
+            match out.write_all(bytes).and_then(|()| out.flush()) {
+                // The reader stopped reading (`| head`): what it read is all it asked for.
+                Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => Ok(()),
+                r => r.context("writing to stdout"),
+            }
         }
         Some(p) => {
             let tmp = crate::store::temp_sibling(p);
