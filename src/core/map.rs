@@ -419,6 +419,11 @@ pub struct Integrator {
     training: TrainingBuilder,
     set: TrainingSet,
     scatter: Scatter,
+    /// With several threads per scan: the training points in cell units, each thread's slab
+    /// of them, and the scatters of the threads beyond the first.
+    cells: Vec<super::scatter::CellPoint>,
+    slabs: Vec<Vec<super::scatter::CellPoint>>,
+    helpers: Vec<Scatter>,
 }
 
 impl Integrator {
@@ -430,6 +435,9 @@ impl Integrator {
             training: TrainingBuilder::default(),
             set: TrainingSet::default(),
             scatter: Scatter::default(),
+            cells: Vec::new(),
+            slabs: Vec::new(),
+            helpers: Vec::new(),
         }
     }
 
@@ -508,15 +516,44 @@ impl Integrator {
     }
 
     /// Adds the evidence of the training set built by the last [`Self::training`] call to
-    /// `sink`: on one thread straight into its blocks, on more through per-thread deltas. The
-    /// same bits as applying [`Self::training_delta`].
+    /// `sink`, straight into its blocks. The same bits as applying [`Self::training_delta`],
+    /// for any number of threads.
+    ///
+    /// With several threads the points are cut into slabs of whole blocks along x, each with
+    /// about as many points. The first slab goes into `sink` on this
+    /// thread; every other slab into a map of its own on a thread of its own, whose blocks are
+    /// then added into `sink` (new blocks are moved in; only the blocks where the windows of
+    /// two slabs meet are added cell by cell). Sums are integers, so the split changes no bit.
+    /// Per-thread deltas, summed and then applied, were slower than one thread: a dense 64-beam
+    /// scan's evidence took 123–185 ms on two threads against 54–64 ms on one.
     pub fn add_training_into<S: BlockSink + ?Sized>(&mut self, sink: &mut S, threads: usize) {
         if threads <= 1 {
             self.scatter.add_into(&self.set, &self.geometry, &self.table, sink);
-        } else {
-            let delta = self.training_delta(threads);
-            sink.add_delta(&delta, 1);
-            self.scatter.recycle(delta);
+            return;
+        }
+        let (geo, table, params) = (&self.geometry, &self.table, self.params);
+        super::evidence::labelled_cell_points(&self.set, geo.res_m, &mut self.cells);
+        slabs_by_block_x(&self.cells, threads, &mut self.slabs);
+        self.helpers.resize_with(threads - 1, Scatter::default);
+        let Some((first, others)) = self.slabs.split_first() else { return };
+        let maps: Vec<EvidenceMap> = std::thread::scope(|scope| {
+            let handles: Vec<_> = others
+                .iter()
+                .zip(&mut self.helpers)
+                .filter(|(slab, _)| !slab.is_empty())
+                .map(|(slab, scatter)| {
+                    scope.spawn(move || {
+                        let mut own = EvidenceMap::new(params);
+                        scatter.add_cells_into(slab, geo, table, &mut own);
+                        own
+                    })
+                })
+                .collect();
+            self.scatter.add_cells_into(first, geo, table, sink);
+            handles.into_iter().map(|h| h.join().unwrap_or_else(|e| std::panic::resume_unwind(e))).collect()
+        });
+        for (key, slot) in maps.into_iter().flat_map(|m| m.blocks) {
+            sink.add_whole_block(key, slot.block);
         }
     }
 
@@ -548,6 +585,43 @@ impl Integrator {
         threads: usize,
     ) {
         self.add_scan_into(map, points_world, origin_world, threads, None);
+    }
+}
+
+/// Cuts `pts` into `n` slabs of whole blocks along x (block column `x >> BLOCK_SHIFT` of each
+/// point's cell), each holding about `1/n` of the points, into `slabs` (cleared first; some
+/// may end up empty). Points keep their order within a slab.
+fn slabs_by_block_x(
+    pts: &[super::scatter::CellPoint],
+    n: usize,
+    slabs: &mut Vec<Vec<super::scatter::CellPoint>>,
+) {
+    use super::key::BLOCK_SHIFT;
+    slabs.resize_with(n, Vec::new);
+    slabs.iter_mut().for_each(Vec::clear);
+    let column = |p: &[f64; 3]| super::evidence::split_point(*p).0[0] >> BLOCK_SHIFT;
+    let (Some(lo), Some(hi)) =
+        (pts.iter().map(|(p, _)| column(p)).min(), pts.iter().map(|(p, _)| column(p)).max())
+    else {
+        return;
+    };
+    // Points per block column, then the first column of each slab: where the running count
+    // passes the next multiple of 1/n of the points.
+    let mut count = vec![0usize; (i64::from(hi) - i64::from(lo) + 1) as usize];
+    for (p, _) in pts {
+        count[(column(p) - lo) as usize] += 1;
+    }
+    let mut slab_of = vec![0usize; count.len()];
+    let (mut seen, mut slab) = (0usize, 0usize);
+    for (c, &k) in count.iter().enumerate() {
+        while slab + 1 < n && seen * n >= (slab + 1) * pts.len() {
+            slab += 1;
+        }
+        slab_of[c] = slab;
+        seen += k;
+    }
+    for &(p, hit) in pts {
+        slabs[slab_of[(column(&p) - lo) as usize]].push((p, hit));
     }
 }
 
@@ -712,6 +786,10 @@ mod tests {
         type Step<'a> = (&'static str, Box<dyn Fn(&mut EvidenceMap) + 'a>);
         let steps: Vec<Step> = vec![
             ("integrate", Box::new(|m| Integrator::new(params).integrate(m, &pts, o, 1))),
+            (
+                "integrate on 3 threads",
+                Box::new(|m| Integrator::new(params).integrate(m, &pts, [o[0], o[1], 0.4], 3)),
+            ),
             ("apply", Box::new(|m| m.apply(&delta, 1))),
             ("remove", Box::new(|m| m.apply(&delta, -1))),
             ("merge", Box::new(|m| m.merge_from(&other).unwrap())),
@@ -758,6 +836,82 @@ mod tests {
         let mut integ = Integrator::new(params);
         assert_eq!(integ.scan_delta(&pts, o, 1), integ.scan_delta(&pts, o, 2));
         assert_eq!(integ.scan_delta(&pts, o, 1), integ.scan_delta(&pts, o, 5));
+    }
+
+    /// A scan split across threads (slabs of blocks, the first straight into the map, the others
+    /// through maps of their own) adds the same bits as one thread, scan after scan on a map that
+    /// already holds the blocks, and leaves a snapshot taken between scans as it was.
+    #[test]
+    fn threads_per_scan_add_the_same_bits_into_the_map() {
+        let params = MapParams::default();
+        let (_, sim) = crate::sim::simulate(3, 6, &crate::sim::Lidar::default());
+        let mut scans: Vec<(Vec<[f32; 3]>, [f64; 3])> =
+            sim.into_iter().map(|s| (s.points_world, s.origin)).collect();
+        scans.push(wall_scan());
+        let build = |threads: usize, upto: usize| {
+            let (mut map, mut integ) = (EvidenceMap::new(params), Integrator::new(params));
+            for (pts, o) in &scans[..upto] {
+                integ.integrate(&mut map, pts, *o, threads);
+            }
+            map
+        };
+        let one = build(1, scans.len());
+        for threads in [2, 3, 8] {
+            let (mut map, mut integ) = (EvidenceMap::new(params), Integrator::new(params));
+            let mut held = Vec::new();
+            for (i, (pts, o)) in scans.iter().enumerate() {
+                integ.integrate(&mut map, pts, *o, threads);
+                held.push(map.clone());
+                assert_eq!(map.take_changes().is_some(), i > 0, "the log is complete after the first take");
+            }
+            assert!(same_blocks(&map, &one), "{threads} threads");
+            for (i, snap) in held.iter().enumerate().step_by(3) {
+                assert!(
+                    same_blocks(snap, &build(1, i + 1)),
+                    "{threads} threads: snapshot after scan {}",
+                    i + 1
+                );
+            }
+        }
+    }
+
+    fn same_blocks(a: &EvidenceMap, b: &EvidenceMap) -> bool {
+        a.block_keys_sorted() == b.block_keys_sorted()
+            && a.block_keys_sorted().into_iter().all(|k| a.block(k) == b.block(k))
+    }
+
+    #[test]
+    fn slabs_split_points_by_block_column_into_even_parts() {
+        let mut slabs = Vec::new();
+        // Columns of very different weight: 1000 points in block column 0, 10 in each of 1..=40.
+        let mut pts: Vec<super::super::scatter::CellPoint> =
+            (0..1000).map(|i| ([0.5 + (i % 8) as f64, 3.0, 1.0], true)).collect();
+        pts.extend((0..400).map(|i| ([8.0 * (1 + i % 40) as f64 + 0.5, 0.0, 0.0], i % 2 == 0)));
+        for n in [1, 2, 3, 7] {
+            slabs_by_block_x(&pts, n, &mut slabs);
+            assert_eq!(slabs.len(), n);
+            assert_eq!(slabs.iter().map(Vec::len).sum::<usize>(), pts.len());
+            let column = |p: &[f64; 3]| (p[0] as i32) >> super::super::key::BLOCK_SHIFT;
+            let mut last = i32::MIN;
+            for slab in slabs.iter().filter(|s| !s.is_empty()) {
+                let (lo, hi) = (
+                    slab.iter().map(|(p, _)| column(p)).min().unwrap(),
+                    slab.iter().map(|(p, _)| column(p)).max().unwrap(),
+                );
+                assert!(lo > last, "slabs of {n} overlap or are out of order");
+                last = hi;
+            }
+            // Each slab past the heavy first column holds at most its share plus one column.
+            for slab in slabs.iter().skip(1) {
+                assert!(
+                    slab.len() <= pts.len() / n + 10,
+                    "{n} slabs: {:?}",
+                    slabs.iter().map(Vec::len).collect::<Vec<_>>()
+                );
+            }
+        }
+        slabs_by_block_x(&[], 3, &mut slabs);
+        assert!(slabs.iter().all(Vec::is_empty));
     }
 
     #[test]

@@ -17,8 +17,9 @@
 //! On one thread, [`Scatter::add_into`] folds the bricks straight into the blocks of a
 //! [`BlockSink`] (the map or an edit of it): each block is taken out once per tile, changed in
 //! place (copied first only if a snapshot shares it) and put back — no delta blocks to fill,
-//! read back into the map and clear. Deltas ([`Scatter::delta`]) remain for several threads per
-//! scan, for removing a scan and for the parallel workers.
+//! read back into the map and clear. Several threads per scan do the same, each on a slab of
+//! the scan's blocks (see `Integrator::add_training_into`). Deltas ([`Scatter::delta`]) remain
+//! for removing a scan.
 //!
 //! # Where the time goes (sample data, 2-vCPU VM, release, other core idle)
 //!
@@ -32,7 +33,8 @@
 //! many brick cells are folded as lanes added: ~119 buckets of ~48 points per scan, each
 //! brick 12³ cells per label), window placement ~9%, bucketing ~3%, new blocks and the hash
 //! table ~3%. Measured and not kept: a voxel table with the key beside each slot (16-byte
-//! slots, 4× larger: slower); the same with keys and entries in two slot-parallel arrays and a
+//! slots, 4× larger: slower; kept since 2026-12-03 together with prefetched rounds of probes,
+//! see `training.rs`, which made it faster); the same with keys and entries in two slot-parallel arrays and a
 //! branch-free insert (no change: the lookups wait on L2, not on mispredicted branches);
 //! prefetching the table slots of a ray's free samples (no change); an `Arc::make_mut` per
 //! folded row (an atomic compare-exchange each, 26% of the fold: now once per block region);

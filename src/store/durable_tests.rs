@@ -80,6 +80,15 @@ fn a_batch_on_several_threads_gives_the_bits_of_one_and_a_bad_scan_changes_nothi
         assert_eq!(cells(dm.map()), cells(&clean(&raws)), "{threads} threads");
         drop(dm);
         assert_eq!(cells(&load_map(&dir.path().join(&name)).unwrap()), cells(&clean(&raws)), "as stored");
+        // One scan at a time: each lone scan is split across the threads, into the map's edit.
+        let name = format!("lone{threads}.bgkmap");
+        let (mut dm, pending) = journaled(dir.path(), &name, &named, threads);
+        for p in &pending {
+            dm.apply(std::slice::from_ref(p)).unwrap();
+        }
+        assert_eq!(cells(dm.map()), cells(&clean(&raws)), "{threads} threads, one scan at a time");
+        drop(dm);
+        assert_eq!(cells(&load_map(&dir.path().join(&name)).unwrap()), cells(&clean(&raws)), "as stored");
     }
     // A scan whose pose cannot be used, in the middle of a batch: the batch fails, nothing moves.
     let mut bad = named.clone();
