@@ -520,10 +520,10 @@ impl Integrator {
     /// for any number of threads.
     ///
     /// With several threads the points are cut into slabs of whole blocks along x, each with
-    /// about as many points. The first slab goes into `sink` on this
-    /// thread; every other slab into a map of its own on a thread of its own, whose blocks are
-    /// then added into `sink` (new blocks are moved in; only the blocks where the windows of
-    /// two slabs meet are added cell by cell). Sums are integers, so the split changes no bit.
+    /// about as many points. The first slab goes into `sink` on this thread; every other slab
+    /// into a map of its own on a thread of its own, whose blocks are then added into `sink`
+    /// (new blocks are moved in; only the blocks where the windows of two slabs meet are added
+    /// cell by cell). Sums are integers, so the split changes no bit.
     /// Per-thread deltas, summed and then applied, were slower than one thread: a dense 64-beam
     /// scan's evidence took 123–185 ms on two threads against 54–64 ms on one.
     pub fn add_training_into<S: BlockSink + ?Sized>(&mut self, sink: &mut S, threads: usize) {
