@@ -500,12 +500,6 @@ mod tests {
         }
     }
 
-    /// Maps equal cell by cell (and hold the same blocks).
-    fn same_map(x: &crate::core::EvidenceMap, y: &crate::core::EvidenceMap) -> bool {
-        x.block_keys_sorted() == y.block_keys_sorted()
-            && x.block_keys_sorted().into_iter().all(|k| x.block(k) == y.block(k))
-    }
-
     /// Adding a training set straight into a map's blocks ([`Scatter::add_into`]) gives the bits
     /// of applying its delta, on top of evidence already there, into a map whose blocks a
     /// snapshot shares (which must not change) and into an edit.
@@ -524,15 +518,18 @@ mod tests {
         for _ in 0..2 {
             let mut got = base.clone();
             scatter.add_into(set, geo, &table, &mut got);
-            assert!(same_map(&got, &want), "straight into the map");
+            assert!(crate::core::EvidenceMap::same_blocks_as(&got, &want), "straight into the map");
         }
         let mut edit = base.edit();
         scatter.add_into(set, geo, &table, &mut edit);
         let blocks = edit.finish();
         let mut edited = base.clone();
         edited.commit_edit(blocks);
-        assert!(same_map(&edited, &want), "through an edit");
-        assert!(same_map(&snapshot, &before), "a snapshot sharing the blocks is untouched");
+        assert!(crate::core::EvidenceMap::same_blocks_as(&edited, &want), "through an edit");
+        assert!(
+            crate::core::EvidenceMap::same_blocks_as(&snapshot, &before),
+            "a snapshot sharing the blocks is untouched"
+        );
     }
 
     proptest! {

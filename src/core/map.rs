@@ -385,6 +385,13 @@ impl EvidenceMap {
         }
     }
 
+    /// True when both maps hold the same blocks with the same evidence, cell by cell (tests).
+    #[cfg(test)]
+    pub(crate) fn same_blocks_as(&self, other: &EvidenceMap) -> bool {
+        self.block_keys_sorted() == other.block_keys_sorted()
+            && self.block_keys_sorted().into_iter().all(|k| self.block(k) == other.block(k))
+    }
+
     /// True when both maps hold the same keys and share every block (not merely equal ones):
     /// what a map and a fresh clone of it satisfy.
     pub fn shares_blocks_with(&self, other: &EvidenceMap) -> bool {
@@ -864,20 +871,15 @@ mod tests {
                 held.push(map.clone());
                 assert_eq!(map.take_changes().is_some(), i > 0, "the log is complete after the first take");
             }
-            assert!(same_blocks(&map, &one), "{threads} threads");
+            assert!(EvidenceMap::same_blocks_as(&map, &one), "{threads} threads");
             for (i, snap) in held.iter().enumerate().step_by(3) {
                 assert!(
-                    same_blocks(snap, &build(1, i + 1)),
+                    snap.same_blocks_as(&build(1, i + 1)),
                     "{threads} threads: snapshot after scan {}",
                     i + 1
                 );
             }
         }
-    }
-
-    fn same_blocks(a: &EvidenceMap, b: &EvidenceMap) -> bool {
-        a.block_keys_sorted() == b.block_keys_sorted()
-            && a.block_keys_sorted().into_iter().all(|k| a.block(k) == b.block(k))
     }
 
     #[test]

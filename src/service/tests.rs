@@ -31,11 +31,6 @@ fn offline(scans: &[ScanInput]) -> EvidenceMap {
     map
 }
 
-fn same(a: &EvidenceMap, b: &EvidenceMap) -> bool {
-    a.block_keys_sorted() == b.block_keys_sorted()
-        && a.block_keys_sorted().into_iter().all(|k| a.block(k) == b.block(k))
-}
-
 #[test]
 fn ingest_equals_offline_build_and_survives_restart() {
     let dir = tempfile::tempdir().unwrap();
@@ -49,7 +44,7 @@ fn ingest_equals_offline_build_and_survives_restart() {
         }
         let snap = svc.snapshot("demo").unwrap();
         assert_eq!(snap.version, 3);
-        assert!(same(&snap.map, &offline(&scans)));
+        assert!(EvidenceMap::same_blocks_as(&snap.map, &offline(&scans)));
         let info = svc.map_info("demo").unwrap();
         assert_eq!(info.sources["robot1"].applied, 3);
         assert_eq!(info.sources["robot1"].highest_seq, Some(3));
@@ -59,14 +54,14 @@ fn ingest_equals_offline_build_and_survives_restart() {
     assert_eq!(svc.list_maps().len(), 1);
     let snap = svc.snapshot("demo").unwrap();
     assert_eq!(snap.version, 3);
-    assert!(same(&snap.map, &offline(&scans)));
+    assert!(EvidenceMap::same_blocks_as(&snap.map, &offline(&scans)));
     let again = svc.insert_scan_blocking("demo", scans[1].clone()).unwrap();
     assert!(!again.applied, "a scan the map holds is not applied twice, across restarts");
-    assert!(same(&svc.snapshot("demo").unwrap().map, &offline(&scans)));
+    assert!(EvidenceMap::same_blocks_as(&svc.snapshot("demo").unwrap().map, &offline(&scans)));
     // And the file is a valid map for the offline tools.
     let path = dir.path().join("demo.bgkmap");
     svc.shutdown();
-    assert!(same(&crate::store::load_map(&path).unwrap(), &offline(&scans)));
+    assert!(EvidenceMap::same_blocks_as(&crate::store::load_map(&path).unwrap(), &offline(&scans)));
 }
 
 #[test]
@@ -175,7 +170,7 @@ fn sensor_frame_scans_equal_their_world_frame_twins() {
     };
     svc.insert_scan_blocking("w", world).unwrap();
     svc.insert_scan_blocking("s", sensor).unwrap();
-    assert!(same(&svc.snapshot("w").unwrap().map, &svc.snapshot("s").unwrap().map));
+    assert!(EvidenceMap::same_blocks_as(&svc.snapshot("w").unwrap().map, &svc.snapshot("s").unwrap().map));
 }
 
 #[test]
@@ -225,7 +220,10 @@ fn readers_never_see_a_partial_scan() {
             while std::time::Instant::now() < deadline {
                 let snap = svc.snapshot("m").unwrap();
                 let v = snap.version as usize;
-                assert!(same(&snap.map, &prefixes[v]), "snapshot at version {v} is not a whole-scan state");
+                assert!(
+                    EvidenceMap::same_blocks_as(&snap.map, &prefixes[v]),
+                    "snapshot at version {v} is not a whole-scan state"
+                );
                 seen.insert(v);
                 if v == 5 {
                     break;
@@ -290,7 +288,11 @@ fn publishes_that_do_not_move_the_version_keep_snapshots_exact() {
         let snap = svc.snapshot("m").unwrap();
         assert!(Arc::ptr_eq(&snap, &applied), "the prune after scan {} replaced the snapshot", i + 1);
         assert_eq!(snap.version, i as u64 + 1);
-        assert!(same(&snap.map, &offline(&scans[..=i])), "snapshot after scan {} and its prune", i + 1);
+        assert!(
+            EvidenceMap::same_blocks_as(&snap.map, &offline(&scans[..=i])),
+            "snapshot after scan {} and its prune",
+            i + 1
+        );
         if i % 2 == 0 {
             held.push(snap);
         }
@@ -318,7 +320,11 @@ fn recycled_snapshots_are_the_maps_they_name() {
         assert!(svc.insert_scan_blocking("m", s.clone()).unwrap().applied);
         let snap = svc.snapshot("m").unwrap();
         assert_eq!(snap.version, i as u64 + 1);
-        assert!(same(&snap.map, &offline(&scans[..=i])), "snapshot after scan {}", i + 1);
+        assert!(
+            EvidenceMap::same_blocks_as(&snap.map, &offline(&scans[..=i])),
+            "snapshot after scan {}",
+            i + 1
+        );
         if i % 3 == 0 {
             held.push(snap);
         }
@@ -330,7 +336,7 @@ fn recycled_snapshots_are_the_maps_they_name() {
     assert_eq!(svc.retract("m", selector).unwrap().scans, 1);
     let rest: Vec<ScanInput> = scans.iter().filter(|s| s.seq != 3).cloned().collect();
     let snap = svc.snapshot("m").unwrap();
-    assert!(same(&snap.map, &offline(&rest)), "the retraction's snapshot");
+    assert!(EvidenceMap::same_blocks_as(&snap.map, &offline(&rest)), "the retraction's snapshot");
     assert!(snap.map.block_count() > 0);
     // What the change feed says changed is what did: the blocks of the retracted scan.
     let before = offline(&scans);
