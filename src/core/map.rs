@@ -11,6 +11,7 @@ use super::evidence::{BlockEvidence, BlockSummary, PairGeometry, ScanDelta, Scat
 use super::kernel::{FIXED_ONE, KernelTable};
 use super::key::{BlockKey, CellKey};
 use super::params::{MapParams, Thresholds};
+use super::scatter::CellPoint;
 use super::training::{TrainingBuilder, TrainingSet};
 use std::sync::{Arc, OnceLock};
 
@@ -385,6 +386,14 @@ impl EvidenceMap {
         }
     }
 
+    /// Adds every block of this map into `sink` ([`BlockSink::add_whole_block`]: moved in where
+    /// `sink` has none): how maps of per-thread work go into the map they were for.
+    pub fn add_into<K: BlockSink + ?Sized>(self, sink: &mut K) {
+        for (key, slot) in self.blocks {
+            sink.add_whole_block(key, slot.block);
+        }
+    }
+
     /// True when both maps hold the same blocks with the same evidence, cell by cell (tests).
     #[cfg(test)]
     pub(crate) fn same_blocks_as(&self, other: &EvidenceMap) -> bool {
@@ -428,8 +437,8 @@ pub struct Integrator {
     scatter: Scatter,
     /// With several threads per scan: the training points in cell units, each thread's slab
     /// of them, and the scatters of the threads beyond the first.
-    cells: Vec<super::scatter::CellPoint>,
-    slabs: Vec<Vec<super::scatter::CellPoint>>,
+    cells: Vec<CellPoint>,
+    slabs: Vec<Vec<CellPoint>>,
     helpers: Vec<Scatter>,
 }
 
@@ -505,20 +514,12 @@ impl Integrator {
         if threads <= 1 {
             return self.scatter.delta(&self.set, &self.geometry, &self.table);
         }
-        let (geo, table) = (&self.geometry, &self.table);
-        let mut pts = Vec::with_capacity(self.set.len());
-        super::evidence::labelled_cell_points(&self.set, geo.res_m, &mut pts);
-        let chunk = pts.len().div_ceil(threads).max(1);
-        let parts = std::thread::scope(|s| {
-            let handles: Vec<_> = pts
-                .chunks(chunk)
-                .map(|c| s.spawn(move || Scatter::default().delta_of(c, geo, table)))
-                .collect();
-            handles
-                .into_iter()
-                .map(|h| h.join().unwrap_or_else(|e| std::panic::resume_unwind(e)))
-                .collect::<Vec<_>>()
-        });
+        let delta_of = |scatter: &mut Scatter,
+                        slab: &[CellPoint],
+                        geo: &PairGeometry,
+                        table: &KernelTable| { scatter.delta_of(slab, geo, table) };
+        let (mine, theirs) = self.on_slabs(threads, delta_of, delta_of);
+        let parts = std::iter::once(mine).chain(theirs).collect();
         ScanDelta::sum(parts)
     }
 
@@ -538,30 +539,53 @@ impl Integrator {
             self.scatter.add_into(&self.set, &self.geometry, &self.table, sink);
             return;
         }
-        let (geo, table, params) = (&self.geometry, &self.table, self.params);
+        let params = self.params;
+        let (_, maps) = self.on_slabs(
+            threads,
+            |scatter, slab, geo, table| scatter.add_cells_into(slab, geo, table, sink),
+            |scatter, slab, geo, table| {
+                let mut own = EvidenceMap::new(params);
+                scatter.add_cells_into(slab, geo, table, &mut own);
+                own
+            },
+        );
+        for map in maps {
+            map.add_into(sink);
+        }
+    }
+
+    /// Cuts the last training set's points into `threads` slabs of whole blocks along x
+    /// ([`slabs_by_block_x`]) and runs `first` on the first slab with this integrator's scatter,
+    /// on the calling thread, and `other` on every other non-empty slab with a scatter of its
+    /// own (kept between scans), each on a thread of its own. Returns `first`'s result and the
+    /// others', in slab order.
+    fn on_slabs<A, R: Send>(
+        &mut self,
+        threads: usize,
+        first: impl FnOnce(&mut Scatter, &[CellPoint], &PairGeometry, &KernelTable) -> A,
+        other: impl Fn(&mut Scatter, &[CellPoint], &PairGeometry, &KernelTable) -> R + Sync,
+    ) -> (A, Vec<R>) {
+        let (geo, table) = (&self.geometry, &self.table);
         super::evidence::labelled_cell_points(&self.set, geo.res_m, &mut self.cells);
         slabs_by_block_x(&self.cells, threads, &mut self.slabs);
-        self.helpers.resize_with(threads - 1, Scatter::default);
-        let Some((first, others)) = self.slabs.split_first() else { return };
-        let maps: Vec<EvidenceMap> = std::thread::scope(|scope| {
+        self.helpers.resize_with(threads.saturating_sub(1), Scatter::default);
+        let (head, others) = self.slabs.split_at(1.min(self.slabs.len()));
+        let first_slab = head.first().map_or(&[][..], Vec::as_slice);
+        std::thread::scope(|scope| {
+            let other = &other;
             let handles: Vec<_> = others
                 .iter()
                 .zip(&mut self.helpers)
                 .filter(|(slab, _)| !slab.is_empty())
-                .map(|(slab, scatter)| {
-                    scope.spawn(move || {
-                        let mut own = EvidenceMap::new(params);
-                        scatter.add_cells_into(slab, geo, table, &mut own);
-                        own
-                    })
-                })
+                .map(|(slab, scatter)| scope.spawn(move || other(scatter, slab, geo, table)))
                 .collect();
-            self.scatter.add_cells_into(first, geo, table, sink);
-            handles.into_iter().map(|h| h.join().unwrap_or_else(|e| std::panic::resume_unwind(e))).collect()
-        });
-        for (key, slot) in maps.into_iter().flat_map(|m| m.blocks) {
-            sink.add_whole_block(key, slot.block);
-        }
+            let mine = first(&mut self.scatter, first_slab, geo, table);
+            let theirs = handles
+                .into_iter()
+                .map(|h| h.join().unwrap_or_else(|e| std::panic::resume_unwind(e)))
+                .collect();
+            (mine, theirs)
+        })
     }
 
     /// Adds one scan's evidence to `sink` ([`Self::scan_delta_with_range`]'s, without the delta).
@@ -598,11 +622,7 @@ impl Integrator {
 /// Cuts `pts` into `n` slabs of whole blocks along x (block column `x >> BLOCK_SHIFT` of each
 /// point's cell), each holding about `1/n` of the points, into `slabs` (cleared first; some
 /// may end up empty). Points keep their order within a slab.
-fn slabs_by_block_x(
-    pts: &[super::scatter::CellPoint],
-    n: usize,
-    slabs: &mut Vec<Vec<super::scatter::CellPoint>>,
-) {
+fn slabs_by_block_x(pts: &[CellPoint], n: usize, slabs: &mut Vec<Vec<CellPoint>>) {
     use super::key::BLOCK_SHIFT;
     slabs.resize_with(n, Vec::new);
     slabs.iter_mut().for_each(Vec::clear);
@@ -686,8 +706,8 @@ where
     if let Some((_, e)) = std::iter::once(mine).chain(done).filter_map(Result::err).min_by_key(|(i, _)| *i) {
         return Err(e);
     }
-    for (key, slot) in maps.into_iter().flat_map(|m| m.blocks) {
-        sink.add_whole_block(key, slot.block);
+    for map in maps {
+        map.add_into(sink);
     }
     Ok(())
 }
@@ -886,7 +906,7 @@ mod tests {
     fn slabs_split_points_by_block_column_into_even_parts() {
         let mut slabs = Vec::new();
         // Columns of very different weight: 1000 points in block column 0, 10 in each of 1..=40.
-        let mut pts: Vec<super::super::scatter::CellPoint> =
+        let mut pts: Vec<CellPoint> =
             (0..1000).map(|i| ([0.5 + (i % 8) as f64, 3.0, 1.0], true)).collect();
         pts.extend((0..400).map(|i| ([8.0 * (1 + i % 40) as f64 + 0.5, 0.0, 0.0], i % 2 == 0)));
         for n in [1, 2, 3, 7] {
