@@ -906,8 +906,7 @@ mod tests {
     fn slabs_split_points_by_block_column_into_even_parts() {
         let mut slabs = Vec::new();
         // Columns of very different weight: 1000 points in block column 0, 10 in each of 1..=40.
-        let mut pts: Vec<CellPoint> =
-            (0..1000).map(|i| ([0.5 + (i % 8) as f64, 3.0, 1.0], true)).collect();
+        let mut pts: Vec<CellPoint> = (0..1000).map(|i| ([0.5 + (i % 8) as f64, 3.0, 1.0], true)).collect();
         pts.extend((0..400).map(|i| ([8.0 * (1 + i % 40) as f64 + 0.5, 0.0, 0.0], i % 2 == 0)));
         for n in [1, 2, 3, 7] {
             slabs_by_block_x(&pts, n, &mut slabs);
