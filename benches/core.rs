@@ -31,7 +31,7 @@ fn scan_pipeline(c: &mut Criterion) {
         b.iter(|| builder.build(black_box(&s.points_world), s.origin, &params).len())
     });
     let set = TrainingBuilder::default().build(&s.points_world, s.origin, &params);
-    let geo = PairGeometry::new(params.resolution_m, params.ell_m);
+    let geo = PairGeometry::of(&params);
     let table = KernelTable::new();
     let mut scatter = Scatter::default();
     c.bench_function("evidence/room_scan_scatter", |b| {

@@ -17,8 +17,10 @@ use std::path::{Path, PathBuf};
 
 const FIXTURE: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/fixtures/format-v2.bgkmap");
 
+/// The fixture's parameters. It predates `sub_cells`, so it reads back with `sub_cells = 0`
+/// (training points where they are), which is what built its evidence.
 fn params() -> MapParams {
-    MapParams { max_range_m: 5.0, ell_m: 0.25, ..MapParams::default() }
+    MapParams { max_range_m: 5.0, ell_m: 0.25, sub_cells: 0, ..MapParams::default() }
 }
 
 /// The four scans, from closed-form geometry (no simulator, so they never change).

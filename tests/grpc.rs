@@ -173,6 +173,7 @@ async fn grpc_answers_equal_the_core_and_survive_a_restart() {
         p_free: Some(p.thresholds.p_free),
         p_occ: Some(p.thresholds.p_occ),
         var_max: Some(p.thresholds.var_max),
+        sub_cells: Some(p.sub_cells),
     };
     assert_eq!(info.map, "room");
     assert_eq!(info.params.as_ref(), Some(&want_params));

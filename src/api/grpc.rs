@@ -123,6 +123,7 @@ fn map_params(p: Option<pb::MapParams>) -> Result<MapParams, Status> {
         prior_a: p.prior_a.unwrap_or(d.prior_a),
         prior_b: p.prior_b.unwrap_or(d.prior_b),
         origin_as_free: d.origin_as_free,
+        sub_cells: p.sub_cells.unwrap_or(d.sub_cells),
         thresholds: Thresholds {
             p_free: p.p_free.unwrap_or(d.thresholds.p_free),
             p_occ: p.p_occ.unwrap_or(d.thresholds.p_occ),
@@ -150,6 +151,7 @@ fn map_params_to_pb(p: &MapParams) -> pb::MapParams {
         p_free: Some(p.thresholds.p_free),
         p_occ: Some(p.thresholds.p_occ),
         var_max: Some(p.thresholds.var_max),
+        sub_cells: Some(p.sub_cells),
     }
 }
 

@@ -178,6 +178,7 @@ struct ParamsJson {
     p_free: Option<f64>,
     p_occ: Option<f64>,
     var_max: Option<f64>,
+    sub_cells: Option<u32>,
 }
 
 impl ParamsJson {
@@ -198,6 +199,7 @@ impl ParamsJson {
             prior_a: self.prior_a.unwrap_or(d.prior_a),
             prior_b: self.prior_b.unwrap_or(d.prior_b),
             origin_as_free: d.origin_as_free,
+            sub_cells: self.sub_cells.unwrap_or(d.sub_cells),
             thresholds: Thresholds {
                 p_free: self.p_free.unwrap_or(d.thresholds.p_free),
                 p_occ: self.p_occ.unwrap_or(d.thresholds.p_occ),

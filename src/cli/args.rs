@@ -40,6 +40,10 @@ pub struct ParamArgs {
     /// Do not add the sensor origin as a free sample.
     #[arg(long)]
     pub no_origin_free: bool,
+    /// Place training points at the centres of SUB_CELLS³ sub-cells per cell (a power of two
+    /// up to 64; at most res/(2·SUB_CELLS) off per axis; 0 = exactly where they are).
+    #[arg(long, default_value_t = 8)]
+    pub sub_cells: u32,
     #[command(flatten)]
     pub thresholds: ThresholdArgs,
 }
@@ -57,6 +61,7 @@ impl ParamArgs {
             prior_a: self.prior_a,
             prior_b: self.prior_b,
             origin_as_free: !self.no_origin_free,
+            sub_cells: self.sub_cells,
             thresholds: self.thresholds.resolve(Thresholds::default())?,
         };
         p.validate()?;

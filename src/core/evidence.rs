@@ -315,17 +315,33 @@ impl ScanDelta {
     }
 }
 
-/// Training points converted to cell units (`x / res`), the coordinates every pair uses.
+/// Training points converted to cell units (`x / res`), the coordinates every pair uses; with
+/// `sub_cells = n > 0`, each moved to the centre of its sub-cell (`floor(x·n) + ½) / n` per axis,
+/// so it stays in its cell, at most `1/(2n)` of a cell away. `n` is a power of two, so every
+/// step is exact in f64.
 #[inline]
-pub fn to_cell_units(p_m: [f64; 3], res_m: f64) -> [f64; 3] {
-    [p_m[0] / res_m, p_m[1] / res_m, p_m[2] / res_m]
+pub fn to_cell_units(p_m: [f64; 3], geo: &PairGeometry) -> [f64; 3] {
+    let cells = p_m.map(|v| v / geo.res_m);
+    if geo.sub_cells == 0 {
+        return cells;
+    }
+    let n = f64::from(geo.sub_cells);
+    cells.map(|v| (floor_f64(v * n) + 0.5) / n)
+}
+
+/// `floor` without a libm call (baseline x86-64 has no SSE4.1 `roundsd`); exact for
+/// |v| < 2^53, which holds for every point inside the key range.
+#[inline(always)]
+fn floor_f64(v: f64) -> f64 {
+    let i = v as i64;
+    (if i as f64 > v { i - 1 } else { i }) as f64
 }
 
 /// A training set as labelled points in cell units (hits first, `true`), replacing `out`.
-pub fn labelled_cell_points(set: &TrainingSet, res_m: f64, out: &mut Vec<([f64; 3], bool)>) {
+pub fn labelled_cell_points(set: &TrainingSet, geo: &PairGeometry, out: &mut Vec<([f64; 3], bool)>) {
     out.clear();
-    out.extend(set.hits.iter().map(|&p| (to_cell_units(p, res_m), true)));
-    out.extend(set.frees.iter().map(|&p| (to_cell_units(p, res_m), false)));
+    out.extend(set.hits.iter().map(|&p| (to_cell_units(p, geo), true)));
+    out.extend(set.frees.iter().map(|&p| (to_cell_units(p, geo), false)));
 }
 
 /// Floor to i32 without a libm call (baseline x86-64 has no SSE4.1 `roundsd`); exact for the
@@ -366,16 +382,25 @@ pub struct PairGeometry {
     /// `N·2^COORD_SHIFT / ell_cells²`: turns a squared distance (cells²) into a fixed-point
     /// kernel-table coordinate.
     pub scale: f64,
+    /// Training points sit at sub-cell centres, `sub_cells` per cell edge (0: where they are);
+    /// see [`to_cell_units`].
+    pub sub_cells: u32,
 }
 
 impl PairGeometry {
-    pub fn new(res_m: f64, ell_m: f64) -> Self {
+    pub fn new(res_m: f64, ell_m: f64, sub_cells: u32) -> Self {
         let ell_cells = ell_m / res_m;
         Self {
             res_m,
             ell_cells,
             scale: TABLE_INTERVALS as f64 * f64::from(1u32 << COORD_SHIFT) / (ell_cells * ell_cells),
+            sub_cells,
         }
+    }
+
+    /// The geometry of a map's parameters.
+    pub fn of(params: &MapParams) -> Self {
+        Self::new(params.resolution_m, params.ell_m, params.sub_cells)
     }
 
     /// Stencil radius: cells within `ell` of a point differ from its cell by at most this.
@@ -392,9 +417,7 @@ pub fn brute_force_cell(
     table: &KernelTable,
 ) -> (i64, i64) {
     let sum = |pts: &[[f64; 3]]| -> i64 {
-        pts.iter()
-            .map(|&p| table.quantized_coord(pair_coord(to_cell_units(p, geo.res_m), cell, geo.scale)))
-            .sum()
+        pts.iter().map(|&p| table.quantized_coord(pair_coord(to_cell_units(p, geo), cell, geo.scale))).sum()
     };
     (sum(&set.hits), sum(&set.frees))
 }
@@ -439,15 +462,18 @@ mod tests {
         out.into_iter().collect()
     }
 
-    fn random_scan() -> impl Strategy<Value = (Vec<[f32; 3]>, [f64; 3], f64, f64)> {
+    /// Points, origin and a geometry: resolution, kernel length and sub-cells (0 = points where
+    /// they are; 8 is the default; 16 and 64 exceed the precomputed windows' size for some widths).
+    fn random_scan() -> impl Strategy<Value = (Vec<[f32; 3]>, [f64; 3], f64, f64, u32)> {
         (
             prop::collection::vec((-4.0f32..4.0, -4.0f32..4.0, -2.0f32..2.0), 1..20),
             (-2.0f64..2.0, -2.0f64..2.0, -1.0f64..1.0),
             prop::sample::select(vec![0.1, 0.2]),
             prop::sample::select(vec![0.1, 0.2, 0.3, 0.45]),
+            prop::sample::select(vec![0, 1, 2, 8, 8, 16, 64]),
         )
-            .prop_map(|(pts, o, res, ell)| {
-                (pts.into_iter().map(|(x, y, z)| [x, y, z]).collect(), [o.0, o.1, o.2], res, ell)
+            .prop_map(|(pts, o, res, ell, sub)| {
+                (pts.into_iter().map(|(x, y, z)| [x, y, z]).collect(), [o.0, o.1, o.2], res, ell, sub)
             })
     }
 
@@ -472,10 +498,10 @@ mod tests {
         #![proptest_config(ProptestConfig::with_cases(32))]
         /// The scatter equals the brute-force gather over all training points, cell by cell.
         #[test]
-        fn scatter_equals_brute_force((pts, origin, res, ell) in random_scan()) {
+        fn scatter_equals_brute_force((pts, origin, res, ell, sub) in random_scan()) {
             let params = MapParams { resolution_m: res, ell_m: ell, ds_resolution_m: res, free_resolution_m: 0.3, max_range_m: 3.0, ..Default::default() };
             let set = TrainingBuilder::default().build(&pts, origin, &params);
-            let geo = PairGeometry::new(res, ell);
+            let geo = PairGeometry::new(res, ell, sub);
             let table = KernelTable::new();
             let fast = delta_cells(&Scatter::default().delta(&set, &geo, &table));
             prop_assert_eq!(fast, brute_cells(&set, &geo, &table));
@@ -483,13 +509,13 @@ mod tests {
 
         /// Splitting the points across threads (partial deltas summed) gives the same bits.
         #[test]
-        fn partial_deltas_sum_to_the_whole((pts, origin, res, ell) in random_scan(), split in 0usize..200) {
+        fn partial_deltas_sum_to_the_whole((pts, origin, res, ell, sub) in random_scan(), split in 0usize..200) {
             let params = MapParams { resolution_m: res, ell_m: ell, ds_resolution_m: res, ..Default::default() };
             let set = TrainingBuilder::default().build(&pts, origin, &params);
-            let geo = PairGeometry::new(res, ell);
+            let geo = PairGeometry::new(res, ell, sub);
             let table = KernelTable::new();
             let mut labelled = Vec::new();
-            labelled_cell_points(&set, res, &mut labelled);
+            labelled_cell_points(&set, &geo, &mut labelled);
             let k = split.min(labelled.len());
             let whole = Scatter::default().delta_of(&labelled, &geo, &table);
             let parts = ScanDelta::sum(vec![
@@ -536,13 +562,13 @@ mod tests {
         #![proptest_config(ProptestConfig::with_cases(32))]
         #[test]
         fn adding_into_a_map_equals_applying_the_delta(
-            (pts, origin, res, ell) in random_scan(),
-            (pts2, origin2, _, _) in random_scan(),
+            (pts, origin, res, ell, sub) in random_scan(),
+            (pts2, origin2, _, _, _) in random_scan(),
         ) {
             let params = MapParams { resolution_m: res, ell_m: ell, ds_resolution_m: res, free_resolution_m: 0.3, max_range_m: 3.0, ..Default::default() };
             let set = TrainingBuilder::default().build(&pts, origin, &params);
             let earlier = TrainingBuilder::default().build(&pts2, origin2, &params);
-            check_add_into(&set, &earlier, &PairGeometry::new(res, ell));
+            check_add_into(&set, &earlier, &PairGeometry::new(res, ell, sub));
         }
     }
 
@@ -558,11 +584,13 @@ mod tests {
             frees: vec![[0.31, -0.2, 0.1]],
             ..Default::default()
         };
-        let geo = PairGeometry::new(0.1, 0.2);
-        check_add_into(&dense, &far, &geo);
-        check_add_into(&far, &dense, &geo);
-        for ell in [0.04, 0.1, 0.14, 0.2, 0.25, 0.3, 0.45] {
-            check_add_into(&far, &far, &PairGeometry::new(0.1, ell));
+        for sub in [0, 8] {
+            let geo = PairGeometry::new(0.1, 0.2, sub);
+            check_add_into(&dense, &far, &geo);
+            check_add_into(&far, &dense, &geo);
+            for ell in [0.04, 0.1, 0.14, 0.2, 0.25, 0.3, 0.45] {
+                check_add_into(&far, &far, &PairGeometry::new(0.1, ell, sub));
+            }
         }
     }
 
@@ -577,19 +605,55 @@ mod tests {
         let mut hits: Vec<[f64; 3]> = (0..n).map(|_| spot(&mut rng)).collect();
         hits.extend(std::iter::repeat_n([0.45, 0.45, 0.45], n));
         let set = TrainingSet { frees: hits[..n / 2].to_vec(), hits, ..Default::default() };
-        let geo = PairGeometry::new(0.1, 0.2);
-        let table = KernelTable::new();
-        let fast = delta_cells(&Scatter::default().delta(&set, &geo, &table));
-        let brute = brute_cells(&set, &geo, &table);
-        assert!(brute.values().any(|&(a, _)| a > i64::from(i32::MAX)), "sums beyond an i32 are exercised");
-        assert_eq!(fast, brute);
+        for sub in [0, 8] {
+            let geo = PairGeometry::new(0.1, 0.2, sub);
+            let table = KernelTable::new();
+            let fast = delta_cells(&Scatter::default().delta(&set, &geo, &table));
+            let brute = brute_cells(&set, &geo, &table);
+            assert!(
+                brute.values().any(|&(a, _)| a > i64::from(i32::MAX)),
+                "sums beyond an i32 are exercised"
+            );
+            assert_eq!(fast, brute, "sub-cells {sub}");
+        }
+    }
+
+    /// Sub-cell placement keeps a point in its cell, at most 1/(2n) of a cell per axis from
+    /// where it was, at the centre of its sub-cell; 0 sub-cells leaves it alone.
+    #[test]
+    fn points_move_to_their_sub_cell_centres() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        for n in [1u32, 2, 8, 64] {
+            let geo = PairGeometry::new(0.1, 0.2, n);
+            for i in 0..10_000 {
+                let p: [f64; 3] = std::array::from_fn(|_| match i % 3 {
+                    0 => rng.random_range(-1e4..1e4),
+                    1 => f64::from(rng.random_range(-1000..1000)) * 0.1 / f64::from(n),
+                    _ => rng.random_range(-1.0..1.0),
+                });
+                let raw = to_cell_units(p, &PairGeometry::new(0.1, 0.2, 0));
+                let placed = to_cell_units(p, &geo);
+                for a in 0..3 {
+                    assert_eq!(floor_i32(placed[a]), floor_i32(raw[a]), "same cell: {p:?}");
+                    assert!((placed[a] - raw[a]).abs() <= 0.5 / f64::from(n) + 1e-9, "{p:?}");
+                    let k = placed[a] * f64::from(n) - 0.5;
+                    assert_eq!(k, k.round(), "a sub-cell centre: {p:?}");
+                }
+            }
+        }
+        assert_eq!(
+            to_cell_units([0.123, -0.05, 7.0], &PairGeometry::new(0.1, 0.2, 0)),
+            [0.123 / 0.1, -0.5, 70.0]
+        );
     }
 
     #[test]
     fn far_outliers_are_tiled_not_allocated_densely() {
         let set =
             TrainingSet { hits: vec![[0.0, 0.0, 0.0], [5000.0, -4000.0, 3000.0]], ..Default::default() };
-        let geo = PairGeometry::new(0.1, 0.2);
+        // Points where they are: a point at a cell centre stays there.
+        let geo = PairGeometry::new(0.1, 0.2, 0);
         let d = Scatter::default().delta(&set, &geo, &KernelTable::new());
         let cells = delta_cells(&d);
         assert!(cells.keys().any(|c| c.x > 40000) && cells.keys().any(|c| c.x < 10));

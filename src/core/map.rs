@@ -445,7 +445,7 @@ pub struct Integrator {
 impl Integrator {
     pub fn new(params: MapParams) -> Self {
         Self {
-            geometry: PairGeometry::new(params.resolution_m, params.ell_m),
+            geometry: PairGeometry::of(&params),
             params,
             table: KernelTable::new(),
             training: TrainingBuilder::default(),
@@ -566,7 +566,7 @@ impl Integrator {
         other: impl Fn(&mut Scatter, &[CellPoint], &PairGeometry, &KernelTable) -> R + Sync,
     ) -> (A, Vec<R>) {
         let (geo, table) = (&self.geometry, &self.table);
-        super::evidence::labelled_cell_points(&self.set, geo.res_m, &mut self.cells);
+        super::evidence::labelled_cell_points(&self.set, geo, &mut self.cells);
         slabs_by_block_x(&self.cells, threads, &mut self.slabs);
         self.helpers.resize_with(threads.saturating_sub(1), Scatter::default);
         let (head, others) = self.slabs.split_at(1.min(self.slabs.len()));
@@ -744,35 +744,48 @@ mod tests {
         }
     }
 
+    /// Eq. 8 over the training points where the map holds them: at sub-cell centres by default,
+    /// exactly where they are with `sub_cells = 0`.
     #[test]
     fn well_observed_cells_follow_nadaraya_watson() {
-        let params = MapParams::default();
-        let mut map = EvidenceMap::new(params);
-        let (pts, o) = wall_scan();
-        let mut integ = Integrator::new(params);
-        integ.integrate(&mut map, &pts, o, 1);
-        let set = integ.training(&pts, o).clone();
-        let res = params.resolution_m;
-        let mut checked = 0;
-        let keys = map.block_keys_sorted();
-        let cells = keys.iter().flat_map(|k| (0..crate::core::key::BLOCK_CELLS).map(move |i| k.cell(i)));
-        for cell in cells {
-            let c = cell.centre(res);
-            let dist =
-                |p: &[f64; 3]| ((p[0] - c[0]).powi(2) + (p[1] - c[1]).powi(2) + (p[2] - c[2]).powi(2)).sqrt();
-            let y: f64 = set.hits.iter().map(|p| unit_kernel(dist(p), params.ell_m)).sum();
-            let k: f64 = y + set.frees.iter().map(|p| unit_kernel(dist(p), params.ell_m)).sum::<f64>();
-            // Eq. 8 holds where the evidence dwarfs the priors (α0 + β0 = 0.002).
-            if k < 1.0 {
-                continue;
+        for sub_cells in [8, 0] {
+            let params = MapParams { sub_cells, ..MapParams::default() };
+            let mut map = EvidenceMap::new(params);
+            let (pts, o) = wall_scan();
+            let mut integ = Integrator::new(params);
+            integ.integrate(&mut map, &pts, o, 1);
+            let set = integ.training(&pts, o).clone();
+            let geo = PairGeometry::of(&params);
+            let placed = |pts: &[[f64; 3]]| -> Vec<[f64; 3]> {
+                pts.iter().map(|&p| super::super::evidence::to_cell_units(p, &geo)).collect()
+            };
+            let (hits, frees) = (placed(&set.hits), placed(&set.frees));
+            let mut checked = 0;
+            let keys = map.block_keys_sorted();
+            let cells = keys.iter().flat_map(|k| (0..crate::core::key::BLOCK_CELLS).map(move |i| k.cell(i)));
+            for cell in cells {
+                // In cell units: the centre of cell i is i + ½.
+                let c = [cell.x, cell.y, cell.z].map(|v| f64::from(v) + 0.5);
+                let dist = |p: &[f64; 3]| {
+                    ((p[0] - c[0]).powi(2) + (p[1] - c[1]).powi(2) + (p[2] - c[2]).powi(2)).sqrt()
+                };
+                let y: f64 = hits.iter().map(|p| unit_kernel(dist(p), geo.ell_cells)).sum();
+                let k: f64 = y + frees.iter().map(|p| unit_kernel(dist(p), geo.ell_cells)).sum::<f64>();
+                // Eq. 8 holds where the evidence dwarfs the priors (α0 + β0 = 0.002).
+                if k < 1.0 {
+                    continue;
+                }
+                let p = map.estimate(cell, &Thresholds::default()).probability;
+                assert!((p - y / k).abs() < 1e-3, "cell {cell:?}: p {p} vs Nadaraya–Watson {}", y / k);
+                checked += 1;
             }
-            let p = map.estimate(cell, &Thresholds::default()).probability;
-            assert!((p - y / k).abs() < 1e-3, "cell {cell:?}: p {p} vs Nadaraya–Watson {}", y / k);
-            checked += 1;
+            assert!(checked > 500, "only {checked} well-observed cells");
+            assert_eq!(
+                map.estimate(CellKey::new(30, 0, 0), &Thresholds::default()).state,
+                CellState::Occupied
+            );
+            assert_eq!(map.estimate(CellKey::new(15, 0, 0), &Thresholds::default()).state, CellState::Free);
         }
-        assert!(checked > 500, "only {checked} well-observed cells");
-        assert_eq!(map.estimate(CellKey::new(30, 0, 0), &Thresholds::default()).state, CellState::Occupied);
-        assert_eq!(map.estimate(CellKey::new(15, 0, 0), &Thresholds::default()).state, CellState::Free);
     }
 
     /// Station keeping: N insertions of one scan give exactly N times its evidence.

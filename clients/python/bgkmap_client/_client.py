@@ -58,6 +58,7 @@ PARAM_NAMES: Tuple[str, ...] = (
     "p_free",
     "p_occ",
     "var_max",
+    "sub_cells",
 )
 
 ArrayLike = Union[np.ndarray, Sequence[float], Sequence[Sequence[float]]]

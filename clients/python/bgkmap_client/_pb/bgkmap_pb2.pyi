@@ -40,7 +40,7 @@ UPDATE_KIND_LIVE: UpdateKind
 UPDATE_KIND_RESYNC: UpdateKind
 
 class MapParams(_message.Message):
-    __slots__ = ("resolution", "sf2", "ell", "free_resolution", "ds_resolution", "max_range", "range_mode", "prior_a", "prior_b", "p_free", "p_occ", "var_max")
+    __slots__ = ("resolution", "sf2", "ell", "free_resolution", "ds_resolution", "max_range", "range_mode", "prior_a", "prior_b", "p_free", "p_occ", "var_max", "sub_cells")
     RESOLUTION_FIELD_NUMBER: _ClassVar[int]
     SF2_FIELD_NUMBER: _ClassVar[int]
     ELL_FIELD_NUMBER: _ClassVar[int]
@@ -53,6 +53,7 @@ class MapParams(_message.Message):
     P_FREE_FIELD_NUMBER: _ClassVar[int]
     P_OCC_FIELD_NUMBER: _ClassVar[int]
     VAR_MAX_FIELD_NUMBER: _ClassVar[int]
+    SUB_CELLS_FIELD_NUMBER: _ClassVar[int]
     resolution: float
     sf2: float
     ell: float
@@ -65,7 +66,8 @@ class MapParams(_message.Message):
     p_free: float
     p_occ: float
     var_max: float
-    def __init__(self, resolution: _Optional[float] = ..., sf2: _Optional[float] = ..., ell: _Optional[float] = ..., free_resolution: _Optional[float] = ..., ds_resolution: _Optional[float] = ..., max_range: _Optional[float] = ..., range_mode: _Optional[str] = ..., prior_a: _Optional[float] = ..., prior_b: _Optional[float] = ..., p_free: _Optional[float] = ..., p_occ: _Optional[float] = ..., var_max: _Optional[float] = ...) -> None: ...
+    sub_cells: int
+    def __init__(self, resolution: _Optional[float] = ..., sf2: _Optional[float] = ..., ell: _Optional[float] = ..., free_resolution: _Optional[float] = ..., ds_resolution: _Optional[float] = ..., max_range: _Optional[float] = ..., range_mode: _Optional[str] = ..., prior_a: _Optional[float] = ..., prior_b: _Optional[float] = ..., p_free: _Optional[float] = ..., p_occ: _Optional[float] = ..., var_max: _Optional[float] = ..., sub_cells: _Optional[int] = ...) -> None: ...
 
 class CreateMapRequest(_message.Message):
     __slots__ = ("map", "params")
