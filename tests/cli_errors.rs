@@ -120,6 +120,15 @@ fn merge_of_different_parameters_names_the_parameter() {
         &["ell", "differ"],
     );
     assert_no_output(dir, "out.bgkmap");
+    // Points where they are against points at sub-cell centres: different evidence, no merge.
+    build(dir, "exact.bgkmap", &["--sub-cells", "0"], &sim.scans[..1]);
+    run_fail_code(
+        dir,
+        ["merge", "exact.bgkmap", "default.bgkmap", "--out", "out.bgkmap"],
+        1,
+        &["sub_cells: 0 vs 8", "differ"],
+    );
+    assert_no_output(dir, "out.bgkmap");
 }
 
 #[test]
@@ -178,6 +187,8 @@ fn invalid_parameters_are_named() {
         ("--ell", "inf", "ell"),
         ("--sf2", "-2", "sf2"),
         ("--p-occ", "1.5", "p_occ"),
+        ("--sub-cells", "3", "sub_cells"),
+        ("--sub-cells", "128", "sub_cells"),
     ] {
         // `--flag=value`: a bare `-1` would be read as an option by the argument parser.
         let arg = format!("{flag}={value}");

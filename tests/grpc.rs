@@ -442,6 +442,12 @@ async fn bad_requests_are_refused_with_the_field_named_and_leave_the_map_unchang
     expect_err(client.create_map(create("room", pb_params())).await, Code::AlreadyExists, &["room"]);
     let bad_ell = pb::MapParams { ell: Some(-0.2), ..pb_params() };
     expect_err(client.create_map(create("other", bad_ell)).await, Code::InvalidArgument, &["MapParams.ell"]);
+    let bad_sub = pb::MapParams { sub_cells: Some(6), ..pb_params() };
+    expect_err(
+        client.create_map(create("other", bad_sub)).await,
+        Code::InvalidArgument,
+        &["MapParams.sub_cells"],
+    );
     let bad_mode = pb::MapParams { range_mode: Some("clip".into()), ..pb_params() };
     expect_err(client.create_map(create("other", bad_mode)).await, Code::InvalidArgument, &["range_mode"]);
     expect_err(client.create_map(create("no/slash", pb_params())).await, Code::InvalidArgument, &["map"]);

@@ -61,6 +61,18 @@ PARAM_NAMES: Tuple[str, ...] = (
     "sub_cells",
 )
 
+#: Parameters that are not floats: ``range_mode`` is a name, ``sub_cells`` a whole number.
+_PARAM_TYPES: Dict[str, Any] = {"range_mode": str, "sub_cells": int}
+
+
+def _param(name: str, value: Any) -> Any:
+    """A map parameter as its wire type (``sub_cells`` must be a whole number)."""
+    kind = _PARAM_TYPES.get(name, float)
+    if kind is int and float(value) != int(value):
+        raise TypeError(f"map parameter {name} must be a whole number, not {value!r}")
+    return kind(value)
+
+
 ArrayLike = Union[np.ndarray, Sequence[float], Sequence[Sequence[float]]]
 Pose = Tuple[ArrayLike, ArrayLike]
 
@@ -349,7 +361,7 @@ def _info_from_json(j: Mapping[str, Any]) -> Dict[str, Any]:
     params = j.get("params", {})
     return {
         "map": j["map"],
-        "params": {n: (params[n] if n == "range_mode" else float(params[n])) for n in PARAM_NAMES if n in params},
+        "params": {n: _param(n, params[n]) for n in PARAM_NAMES if n in params},
         "version": int(j["version"]),
         "blocks": int(j["blocks"]),
         "cells_with_evidence": int(j["cells_with_evidence"]),
@@ -531,7 +543,8 @@ class Client:
         ``params`` are named like ``bgkmap build``'s flags (see :data:`PARAM_NAMES`):
         ``resolution``, ``sf2``, ``ell``, ``free_resolution``, ``ds_resolution``, ``max_range``,
         ``range_mode`` (``"truncate"``/``"drop"``), ``prior_a``, ``prior_b``, ``p_free``,
-        ``p_occ``, ``var_max``; unset ones take the server's defaults. An existing name raises
+        ``p_occ``, ``var_max``, ``sub_cells`` (a whole number); unset ones take the server's
+        defaults. An existing name raises
         ``BgkmapError`` ``ALREADY_EXISTS``.
 
         Returns a dict like :meth:`get_map`'s.
@@ -539,9 +552,7 @@ class Client:
         unknown = sorted(set(params) - set(PARAM_NAMES))
         if unknown:
             raise TypeError(f"unknown map parameters {unknown}; known: {list(PARAM_NAMES)}")
-        clean: Dict[str, Any] = {
-            k: (str(v) if k == "range_mode" else float(v)) for k, v in params.items() if v is not None
-        }
+        clean: Dict[str, Any] = {k: _param(k, v) for k, v in params.items() if v is not None}
         if self.transport == "grpc":
             req = pb.CreateMapRequest(map=name, params=pb.MapParams(**clean))
             return _info_from_pb(self._call("CreateMap", req))

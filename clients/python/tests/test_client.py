@@ -118,12 +118,13 @@ def filled(grpc_client: Client, http_client: Client) -> Dict[str, Any]:
 
 
 def test_create_list_get(grpc_client: Client, http_client: Client) -> None:
-    g = grpc_client.create_map("cg", max_range=6, resolution=0.2, range_mode="drop")
-    h = http_client.create_map("ch", max_range=6, resolution=0.2, range_mode="drop")
+    g = grpc_client.create_map("cg", max_range=6, resolution=0.2, range_mode="drop", sub_cells=0)
+    h = http_client.create_map("ch", max_range=6, resolution=0.2, range_mode="drop", sub_cells=0)
     assert g["map"] == "cg" and h["map"] == "ch"
     assert set(g["params"]) == set(PARAM_NAMES), g["params"]
     assert g["params"]["max_range"] == 6.0 and g["params"]["resolution"] == 0.2
     assert g["params"]["range_mode"] == "drop"
+    assert g["params"]["sub_cells"] == 0 and isinstance(g["params"]["sub_cells"], int)
     assert g["params"]["p_free"] == 0.3 and g["params"]["ell"] == 0.2  # defaults filled in
     assert {k: v for k, v in g.items() if k != "map"} == {k: v for k, v in h.items() if k != "map"}
     assert g["version"] == 0 and g["sources"] == {}
@@ -149,6 +150,11 @@ def test_create_list_get(grpc_client: Client, http_client: Client) -> None:
             c.create_map("bad-params", ell=-1.0)
         assert (e.value.code, e.value.http_status) == ("INVALID_ARGUMENT", 400), e.value
         assert "ell" in e.value.message
+        with pytest.raises(BgkmapError) as e:
+            c.create_map("bad-params", sub_cells=6)
+        assert (e.value.code, e.value.http_status) == ("INVALID_ARGUMENT", 400), e.value
+        assert "sub_cells" in e.value.message
+        assert c.create_map(f"defaults-{c.transport}")["params"]["sub_cells"] == 8
     with pytest.raises(TypeError):
         grpc_client.create_map("x", no_such_param=1)
 
