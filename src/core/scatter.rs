@@ -144,7 +144,9 @@ impl Scatter {
         out
     }
 
-    /// As [`Scatter::delta`] for points already in cell units.
+    /// As [`Scatter::delta`] for points already in cell units, as
+    /// [`labelled_cell_points`](super::evidence::labelled_cell_points) gives them for `geo`
+    /// (with `geo.sub_cells > 0`, at sub-cell centres: their windows are looked up by sub-cell).
     pub fn delta_of(&mut self, pts: &[CellPoint], geo: &PairGeometry, table: &KernelTable) -> ScanDelta {
         let r = geo.radius_cells();
         let mut parts = Vec::new();
@@ -173,7 +175,9 @@ impl Scatter {
         self.cells = cells;
     }
 
-    /// As [`Scatter::add_into`] for points already in cell units.
+    /// As [`Scatter::add_into`] for points already in cell units, as
+    /// [`labelled_cell_points`](super::evidence::labelled_cell_points) gives them for `geo`
+    /// (with `geo.sub_cells > 0`, at sub-cell centres: their windows are looked up by sub-cell).
     pub fn add_cells_into<S: BlockSink + ?Sized>(
         &mut self,
         pts: &[CellPoint],
