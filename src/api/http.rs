@@ -144,7 +144,13 @@ fn info_json(i: &MapInfo) -> Value {
         .to_pairs()
         .into_iter()
         .map(|(k, v)| {
-            let value = v.parse::<f64>().map(Value::from).or_else(|_| v.parse::<bool>().map(Value::from));
+            // `sub_cells` is a whole number, as the `PUT` body takes it; the others are numbers or
+            // flags (or names).
+            let value = if k == "sub_cells" {
+                v.parse::<u64>().ok().map(Value::from)
+            } else {
+                v.parse::<f64>().map(Value::from).or_else(|_| v.parse::<bool>().map(Value::from)).ok()
+            };
             (k.to_string(), value.unwrap_or(Value::String(v)))
         })
         .collect();

@@ -571,6 +571,12 @@ def test_curl_pcd_upload_and_query(server: Server, grpc_client: Client, http_cli
     created = run_curl("-X", "PUT", "-H", "Content-Type: application/json", "--data", '{"max_range": 8}',
                        f"{base}/v1/maps/pcd")
     assert created["map"] == "pcd" and created["params"]["max_range"] == 8
+    # A map's parameters as GET shows them are a valid PUT body (sub_cells a whole number).
+    assert created["params"]["sub_cells"] == 8 and isinstance(created["params"]["sub_cells"], int)
+    body = {k: v for k, v in created["params"].items() if k != "origin_as_free"}
+    copy = run_curl("-X", "PUT", "-H", "Content-Type: application/json", "--data", json.dumps(body),
+                    f"{base}/v1/maps/pcd_copy")
+    assert copy["params"] == created["params"]
     # wait_applied=true: answered once integrated (read-your-writes), so version counts it.
     url = f"{base}/v1/maps/pcd/scans?source=c&seq=1&wait_applied=true"
     ack = run_curl("--data-binary", f"@{pcd}", "-H", "Content-Type: application/x-pcd", url)
