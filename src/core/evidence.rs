@@ -326,15 +326,16 @@ pub fn to_cell_units(p_m: [f64; 3], geo: &PairGeometry) -> [f64; 3] {
         return cells;
     }
     let n = f64::from(geo.sub_cells);
-    cells.map(|v| (floor_f64(v * n) + 0.5) / n)
+    cells.map(|v| (floor_i64(v * n) as f64 + 0.5) / n)
 }
 
-/// `floor` without a libm call (baseline x86-64 has no SSE4.1 `roundsd`); exact for
-/// |v| < 2^53, which holds for every point inside the key range.
+/// `floor` to i64 without a libm call (baseline x86-64 has no SSE4.1 `roundsd`): truncate,
+/// then step down for negative non-integers. Exact for |v| < 2^53 (every point inside the key
+/// range); saturates beyond i64.
 #[inline(always)]
-fn floor_f64(v: f64) -> f64 {
-    let i = v as i64;
-    (if i as f64 > v { i - 1 } else { i }) as f64
+pub(crate) fn floor_i64(v: f64) -> i64 {
+    let t = v as i64;
+    if t as f64 > v { t - 1 } else { t }
 }
 
 /// A training set as labelled points in cell units (hits first, `true`), replacing `out`.

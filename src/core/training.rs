@@ -199,10 +199,7 @@ fn voxel_key(p: [f64; 3], inv_ds: f64) -> Option<u64> {
         if !(-KEY_LIMIT..KEY_LIMIT).contains(&s) {
             return None;
         }
-        // floor without a libm call: truncate, then step down for negative non-integers.
-        let t = s as i64;
-        let f = if (t as f64) > s { t - 1 } else { t };
-        key = (key << KEY_BITS) | ((f + KEY_LIMIT as i64) as u64);
+        key = (key << KEY_BITS) | ((super::evidence::floor_i64(s) + KEY_LIMIT as i64) as u64);
     }
     Some(key)
 }

@@ -147,13 +147,20 @@ impl Brick {
         ell_cells: f64,
     ) -> Placement {
         let (c, f) = split_point(p);
-        let mut start = [0i32; 3];
+        let start = f.map(|v| window_start(v, ell_cells));
+        let (at, regions) = self.locate::<W>(std::array::from_fn(|a| c[a] - block_origin[a] + start[a]));
+        Placement { f, start, at, regions }
+    }
+
+    /// The brick index of a window's first cell and the regions the window touches, from that
+    /// cell's offset (per axis) from the first cell of the bucket's block.
+    #[inline(always)]
+    fn locate<const W: usize>(&self, first: [i32; 3]) -> (usize, u32) {
         let mut base = [0usize; 3];
         let mut regions = [0u32; 3];
         for a in 0..3 {
-            start[a] = window_start(f[a], ell_cells);
-            // In the brick: the cell sits at margin + its offset in the block.
-            let b = (c[a] - block_origin[a] + start[a]) as isize + self.margin as isize;
+            // In the brick: the block's cells start after the margin.
+            let b = first[a] as isize + self.margin as isize;
             debug_assert!(b >= 0 && b as usize + W <= self.edge, "window outside the brick");
             base[a] = b as usize;
             // Regions first..=last along this axis, as a 3-bit mask.
@@ -161,14 +168,9 @@ impl Brick {
             regions[a] = (0b111 >> (2 - (r1 - r0))) << r0;
         }
         let e = self.edge;
-        Placement {
-            f,
-            start,
-            at: (base[2] * e + base[1]) * e + base[0],
-            regions: SPREAD[0][regions[0] as usize]
-                & SPREAD[1][regions[1] as usize]
-                & SPREAD[2][regions[2] as usize],
-        }
+        let regions =
+            SPREAD[0][regions[0] as usize] & SPREAD[1][regions[1] as usize] & SPREAD[2][regions[2] as usize];
+        ((base[2] * e + base[1]) * e + base[0], regions)
     }
 
     /// As [`Self::place`] for a point at a sub-cell centre of `windows`, in integers: its brick
@@ -182,25 +184,17 @@ impl Brick {
         windows: &SnappedWindows,
     ) -> (usize, u32, usize) {
         let n = f64::from(1u32 << windows.shift);
-        let mut base = [0usize; 3];
-        let mut regions = [0u32; 3];
+        let mut first = [0i32; 3];
         let mut window = 0;
         for a in 0..3 {
             let sub = round_to_i64(p[a] * n - 0.5);
             debug_assert!((sub as f64 + 0.5) / n == p[a], "point not at a sub-cell centre: {p:?}");
             let k = (sub & ((1 << windows.shift) - 1)) as usize;
-            let c = (sub >> windows.shift) as i32;
-            let b = (c - block_origin[a] + windows.start[k]) as isize + self.margin as isize;
-            debug_assert!(b >= 0 && b as usize + W <= self.edge, "window outside the brick");
-            base[a] = b as usize;
-            let (r0, r1) = (self.region(base[a]), self.region(base[a] + W - 1));
-            regions[a] = (0b111 >> (2 - (r1 - r0))) << r0;
+            first[a] = (sub >> windows.shift) as i32 - block_origin[a] + windows.start[k];
             window |= k << (windows.shift as usize * a);
         }
-        let e = self.edge;
-        let regions =
-            SPREAD[0][regions[0] as usize] & SPREAD[1][regions[1] as usize] & SPREAD[2][regions[2] as usize];
-        ((base[2] * e + base[1]) * e + base[0], regions, window)
+        let (at, regions) = self.locate::<W>(first);
+        (at, regions, window)
     }
 
     /// Records one added window of label `hit` that touched `regions`.
