@@ -379,8 +379,8 @@ trait FoldTarget {
 /// One block of a [`FoldTarget`], open for adding rows.
 trait FoldBlock {
     /// Adds the hit mass `a` and the free mass `b` to row `row` (`8z + y`) from cell `x` on,
-    /// and zeroes both; `mass[label]` says whether that label's row holds any.
-    fn add_row(&mut self, row: usize, x: usize, a: &mut [i32], b: &mut [i32], mass: [bool; 2]);
+    /// and zeroes both.
+    fn add_row<const N: usize>(&mut self, row: usize, x: usize, a: &mut [i32; N], b: &mut [i32; N]);
 }
 
 /// Folds into the scatter's delta blocks.
@@ -410,12 +410,15 @@ impl FoldTarget for DeltaTarget<'_> {
 
 impl FoldBlock for DeltaRows<'_> {
     #[inline(always)]
-    fn add_row(&mut self, row: usize, x: usize, a: &mut [i32], b: &mut [i32], mass: [bool; 2]) {
+    fn add_row<const N: usize>(&mut self, row: usize, x: usize, a: &mut [i32; N], b: &mut [i32; N]) {
         let at = row * B as usize + x;
         for (label, (dst, src)) in [(&mut self.block.a, a), (&mut self.block.b, b)].into_iter().enumerate() {
-            if mass[label] {
+            if src.iter().any(|&v| v != 0) {
                 self.rows[label] |= 1 << row;
-                fold_row(&mut dst[at..at + src.len()], src);
+                for (d, s) in dst[at..at + N].iter_mut().zip(src.iter_mut()) {
+                    *d += i64::from(*s);
+                    *s = 0;
+                }
             }
         }
     }
@@ -449,10 +452,22 @@ impl<S: BlockSink + ?Sized> FoldTarget for SinkTarget<'_, S> {
 
 impl FoldBlock for &mut BlockEvidence {
     #[inline(always)]
-    fn add_row(&mut self, row: usize, x: usize, a: &mut [i32], b: &mut [i32], _: [bool; 2]) {
+    fn add_row<const N: usize>(&mut self, row: usize, x: usize, a: &mut [i32; N], b: &mut [i32; N]) {
         self.fold_row(row * B as usize + x, a, b);
     }
 }
+
+/// `REGIONS[bit]`: the region `[x, y, z]` (0 = low margin, 1 = the block, 2 = high margin) of
+/// bit `9z + 3y + x` of a brick's touched mask.
+const REGIONS: [[usize; 3]; 27] = {
+    let mut t = [[0; 3]; 27];
+    let mut bit = 0;
+    while bit < 27 {
+        t[bit] = [bit % 3, bit / 3 % 3, bit / 9];
+        bit += 1;
+    }
+    t
+};
 
 /// Adds the touched regions of the brick into the blocks around `block` (the bucket's) in
 /// `target`, zeroing them.
@@ -465,93 +480,79 @@ impl FoldBlock for &mut BlockEvidence {
 /// 128 lines of a bucket's own block from the sink when the bucket starts, a whole bucket's
 /// windows ahead of its fold: evidence 0.726 against 0.715 ms median, twelve alternated runs.
 fn fold_brick(brick: &mut Brick, block: [i32; 3], target: &mut impl FoldTarget) {
-    let (e, m) = (brick.edge(), brick.margin());
+    // The margin is 1 to 3 cells for every width the window path compiles (`window_shape`);
+    // a margin known at compile time makes every row a fixed-length vector operation.
+    match brick.margin() {
+        1 => fold_brick_with::<1>(brick, block, target),
+        2 => fold_brick_with::<2>(brick, block, target),
+        3 => fold_brick_with::<3>(brick, block, target),
+        m => unreachable!("brick margin {m} outside 1..=3"),
+    }
+}
+
+fn fold_brick_with<const M: usize>(brick: &mut Brick, block: [i32; 3], target: &mut impl FoldTarget) {
     let b = B as usize;
-    // Per region: (first brick cell, first target cell, length).
-    let span = |r: usize| [(0, b - m, m), (m, 0, b), (m + b, 0, m)][r];
+    debug_assert_eq!(brick.edge(), b + 2 * M);
+    // Per region along an axis: (first brick cell, first target cell, length).
+    let span = |r: usize| [(0, b - M, M), (M, 0, b), (M + b, 0, M)][r];
     let touched = brick.touched;
     let mut mask = touched[0] | touched[1];
+    let (cells_a, cells_b) = (&mut brick.a[..], &mut brick.b[..]);
     while mask != 0 {
         let bit = mask.trailing_zeros() as usize;
         mask &= mask - 1;
-        let r = [bit % 3, bit / 3 % 3, bit / 9];
-        let (sx, sy, sz) = (span(r[0]), span(r[1]), span(r[2]));
-        let from = |z: usize, y: usize| ((sz.0 + z) * e + sy.0 + y) * e + sx.0;
-        // Windows reach their corners with zero mass: rows that got none are skipped (they stay
-        // zero), and a block is taken only if some row of it got mass. A region has at most
-        // 8 × 8 rows, one bit each.
-        let mut rows = [0u64; 2];
-        for (label, cells) in [&brick.a, &brick.b].into_iter().enumerate() {
-            if touched[label] >> bit & 1 == 0 {
-                continue;
-            }
-            for z in 0..sz.2 {
-                for y in 0..sy.2 {
-                    let at = from(z, y);
-                    rows[label] |= u64::from(!row_is_zero(&cells[at..at + sx.2])) << (z * sy.2 + y);
-                }
-            }
-        }
-        if rows == [0, 0] {
-            continue;
-        }
+        let r = REGIONS[bit];
         let key = [0, 1, 2].map(|i| block[i] + r[i] as i32 - 1);
-        let mut dst = target.block(key);
-        // Both labels of a row at once (the brick is zero wherever no window added).
-        let mut m = rows[0] | rows[1];
-        while m != 0 {
-            let i = m.trailing_zeros() as usize;
-            m &= m - 1;
-            let (z, y) = (i / sy.2, i % sy.2);
-            let at = from(z, y);
-            let (a, b_) = (&mut brick.a[at..at + sx.2], &mut brick.b[at..at + sx.2]);
-            let mass = rows.map(|r| r >> i & 1 != 0);
-            dst.add_row((sz.1 + z) * b + sy.1 + y, sx.1, a, b_, mass);
+        let (y, z) = (span(r[1]), span(r[2]));
+        match r[0] {
+            1 => fold_region::<8, M>(cells_a, cells_b, (M, 0), y, z, key, target),
+            0 => fold_region::<M, M>(cells_a, cells_b, (0, b - M), y, z, key, target),
+            _ => fold_region::<M, M>(cells_a, cells_b, (M + b, 0), y, z, key, target),
         }
     }
     brick.folded();
 }
 
-/// True when a brick row holds only zeros (fixed lengths for the block interior and la3dm's
-/// margin, so the test is a couple of vector instructions).
+/// Folds one region of a brick of margin `M` — `N` cells per row from brick cell `x.0` (to
+/// cell `x.1` of the target's rows), rows `y` and `z` as (first brick cell, first target cell,
+/// count) — into block `key` of `target`, zeroing it. Rows without mass in either label are
+/// skipped (windows reach their corners with zero mass), and the block is taken only if some
+/// row has mass.
 #[inline(always)]
-fn row_is_zero(row: &[i32]) -> bool {
-    #[inline(always)]
-    fn or<const N: usize>(r: &[i32; N]) -> i32 {
-        r.iter().fold(0, |acc, &v| acc | v)
-    }
-    match (row.first_chunk::<8>(), row.first_chunk::<2>()) {
-        (Some(r), _) if row.len() == 8 => or(r) == 0,
-        (_, Some(r)) if row.len() == 2 => or(r) == 0,
-        _ => row.iter().all(|&v| v == 0),
-    }
-}
-
-/// `dst += src; src = 0` for one brick row (fixed lengths for the block interior and la3dm's
-/// margin, so they compile to a few vector instructions).
-#[inline(always)]
-fn fold_row(dst: &mut [i64], src: &mut [i32]) {
-    #[inline(always)]
-    fn fixed<const N: usize>(dst: &mut [i64], src: &mut [i32]) -> bool {
-        let (Some(d), Some(s)) = (dst.first_chunk_mut::<N>(), src.first_chunk_mut::<N>()) else {
-            return false;
-        };
-        for i in 0..N {
-            d[i] += i64::from(s[i]);
+fn fold_region<const N: usize, const M: usize>(
+    a: &mut [i32],
+    b: &mut [i32],
+    x: (usize, usize),
+    y: (usize, usize, usize),
+    z: (usize, usize, usize),
+    key: [i32; 3],
+    target: &mut impl FoldTarget,
+) {
+    let e = B as usize + 2 * M;
+    let at = |zi: usize, yi: usize| ((z.0 + zi) * e + y.0 + yi) * e + x.0;
+    // Rows with mass, bit 8z + y (a region is at most 8 × 8 rows).
+    let mut rows = 0u64;
+    for zi in 0..z.2 {
+        for yi in 0..y.2 {
+            let i = at(zi, yi);
+            let (ra, rb): (&[i32; N], &[i32; N]) =
+                (a[i..i + N].try_into().expect("N cells"), b[i..i + N].try_into().expect("N cells"));
+            let any = ra.iter().zip(rb).fold(0, |acc, (&p, &q)| acc | p | q);
+            rows |= u64::from(any != 0) << (zi * 8 + yi);
         }
-        *s = [0; N];
-        true
     }
-    let done = match src.len() {
-        8 => fixed::<8>(dst, src),
-        2 => fixed::<2>(dst, src),
-        _ => false,
-    };
-    if !done {
-        for (d, s) in dst.iter_mut().zip(src.iter_mut()) {
-            *d += i64::from(*s);
-            *s = 0;
-        }
+    if rows == 0 {
+        return;
+    }
+    let mut dst = target.block(key);
+    while rows != 0 {
+        let r = rows.trailing_zeros() as usize;
+        rows &= rows - 1;
+        let (zi, yi) = (r >> 3, r & 7);
+        let i = at(zi, yi);
+        let ra: &mut [i32; N] = (&mut a[i..i + N]).try_into().expect("N cells");
+        let rb: &mut [i32; N] = (&mut b[i..i + N]).try_into().expect("N cells");
+        dst.add_row((z.1 + zi) * B as usize + y.1 + yi, x.1, ra, rb);
     }
 }
 
