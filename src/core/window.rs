@@ -14,8 +14,9 @@
 //! per map geometry by the same arithmetic, then read and added — on the sample scans that cut
 //! evidence by 30–40% (2026-12-03: 1.55 → 0.95–1.10 ms per scan, the two binaries alternated
 //! five and eight times), on the dense drive 68–72 → 38–48 ms. Placing
-//! such a point is integer arithmetic too (`Brick::place_snapped`): the float-to-int casts of
-//! `Brick::place` (saturating, NaN-checked) cost as much as the old window's lookups.
+//! such a point is integer arithmetic too, read from a table ([`SnappedWindows::place`]): the
+//! float-to-int casts of `Brick::place` (saturating, NaN-checked) cost as much as the old
+//! window's lookups.
 //!
 //! Points arrive bucketed by the block of their cell (see [`super::scatter`]). A bucket's
 //! windows all fall inside a brick of `(B + 2M)³` cells — its block plus a margin of `M`
@@ -163,9 +164,7 @@ impl Brick {
             let b = first[a] as isize + self.margin as isize;
             debug_assert!(b >= 0 && b as usize + W <= self.edge, "window outside the brick");
             base[a] = b as usize;
-            // Regions first..=last along this axis, as a 3-bit mask.
-            let (r0, r1) = (self.region(base[a]), self.region(base[a] + W - 1));
-            regions[a] = (0b111 >> (2 - (r1 - r0))) << r0;
+            regions[a] = self.axis_regions::<W>(base[a]);
         }
         let e = self.edge;
         let regions =
@@ -173,28 +172,12 @@ impl Brick {
         ((base[2] * e + base[1]) * e + base[0], regions)
     }
 
-    /// As [`Self::place`] for a point at a sub-cell centre of `windows`, in integers: its brick
-    /// index, its regions and the index of its window in `windows`. The sub-cell index per
-    /// axis, `floor(p·n)`, is `p·n − ½` exactly, rounded without a saturating cast.
+    /// The regions (along one axis, as a 3-bit mask) of a window whose first cell is at brick
+    /// coordinate `base`.
     #[inline(always)]
-    pub(crate) fn place_snapped<const W: usize>(
-        &self,
-        p: [f64; 3],
-        block_origin: [i32; 3],
-        windows: &SnappedWindows,
-    ) -> (usize, u32, usize) {
-        let n = f64::from(1u32 << windows.shift);
-        let mut first = [0i32; 3];
-        let mut window = 0;
-        for a in 0..3 {
-            let sub = round_to_i64(p[a] * n - 0.5);
-            debug_assert!((sub as f64 + 0.5) / n == p[a], "point not at a sub-cell centre: {p:?}");
-            let k = (sub & ((1 << windows.shift) - 1)) as usize;
-            first[a] = (sub >> windows.shift) as i32 - block_origin[a] + windows.start[k];
-            window |= k << (windows.shift as usize * a);
-        }
-        let (at, regions) = self.locate::<W>(first);
-        (at, regions, window)
+    fn axis_regions<const W: usize>(&self, base: usize) -> u32 {
+        let (r0, r1) = (self.region(base), self.region(base + W - 1));
+        (0b111 >> (2 - (r1 - r0))) << r0
     }
 
     /// Records one added window of label `hit` that touched `regions`.
@@ -217,11 +200,16 @@ impl Brick {
         snapped: Option<&SnappedWindows>,
     ) {
         assert!(pts.len() <= self.room(), "brick not folded in time");
-        let e = self.edge;
+        // The margin of width W is ⌈W/2⌉ (see `window_shape`): a brick edge known at compile
+        // time makes the window's row offsets constants, checked once per window, not per row.
+        let e = B + 2 * W.div_ceil(2);
+        assert_eq!(e, self.edge, "a brick of width {W}'s edge");
         match snapped {
             Some(windows) => {
                 for &(p, hit) in pts {
-                    let (at, regions, window) = self.place_snapped::<W>(p, block_origin, windows);
+                    debug_assert_eq!(split_point(p).0.map(|c| c & !(B as i32 - 1)), block_origin);
+                    debug_assert_eq!(windows.brick_edge, e, "windows placed for another brick");
+                    let (at, regions, window) = windows.place(p);
                     let cells = if hit { &mut self.a } else { &mut self.b };
                     add_values::<W, W3>(windows.window::<W3>(window), cells, at, e);
                     self.note(hit, regions);
@@ -273,8 +261,13 @@ pub struct SnappedWindows {
     built_for: (u64, u64, u32, usize),
     /// `n = 2^shift` sub-cells per cell edge.
     shift: u32,
-    /// Per sub-cell `k` along an axis: the window's first offset from the point's cell.
-    start: Vec<i32>,
+    /// The edge of the bricks the windows are placed in (see [`Brick`]).
+    brick_edge: usize,
+    /// Per cell `l` of a block and sub-cell `k` along an axis, at `l·n + k` (the low bits of a
+    /// point's sub-cell index), per axis: the brick index step of the window's first cell
+    /// (its brick coordinate times the axis' stride) and the [`SPREAD`] of the regions the
+    /// window touches along the axis.
+    places: Vec<[(u32, u32); 3]>,
     /// `n³` windows of W³ values; window `kx + n·(ky + n·kz)` for sub-cell `k` per axis.
     values: Vec<i32>,
 }
@@ -309,9 +302,42 @@ impl SnappedWindows {
                 }
             }
         }
-        self.start = (0..n).map(|k| window_start(offset(k), geo.ell_cells)).collect();
-        (self.built_for, self.shift) = (built_for, geo.sub_cells.trailing_zeros());
+        let (_, margin) = window_shape(geo.ell_cells).expect("a window of width W");
+        let e = B + 2 * margin;
+        let mut probe = Brick::default();
+        probe.reset(margin);
+        self.places = (0..B * n)
+            .map(|i| {
+                let (l, k) = (i / n, i % n);
+                // The brick coordinate of the window's first cell, for a point in cell l of the
+                // bucket's block (the block's cells start after the margin).
+                let first = (l as i32 + window_start(offset(k), geo.ell_cells) + margin as i32) as usize;
+                let regions = probe.axis_regions::<W>(first) as usize;
+                std::array::from_fn(|a| ((first * e.pow(a as u32)) as u32, SPREAD[a][regions]))
+            })
+            .collect();
+        (self.built_for, self.shift, self.brick_edge) = (built_for, geo.sub_cells.trailing_zeros(), e);
         true
+    }
+
+    /// Where the window of a point at a sub-cell centre lies in the brick of its bucket (the
+    /// block of its cell): the brick index of the window's first cell, the regions the window
+    /// touches (bit `9z + 3y + x`) and the window's index here. The sub-cell index per axis,
+    /// `floor(p·n)`, is `p·n − ½` exactly, rounded without a saturating cast; its low bits
+    /// are the cell in the block and the sub-cell, whose placement is read from a table.
+    #[inline(always)]
+    pub(crate) fn place(&self, p: [f64; 3]) -> (usize, u32, usize) {
+        let n = f64::from(1u32 << self.shift);
+        let (mut at, mut regions, mut window) = (0usize, u32::MAX, 0usize);
+        for a in 0..3 {
+            let sub = round_to_i64(p[a] * n - 0.5);
+            debug_assert!((sub as f64 + 0.5) / n == p[a], "point not at a sub-cell centre: {p:?}");
+            let (step, spread) = self.places[(sub & ((B as i64) << self.shift) - 1) as usize][a];
+            at += step as usize;
+            regions &= spread;
+            window |= ((sub & ((1 << self.shift) - 1)) as usize) << (self.shift as usize * a);
+        }
+        (at, regions, window)
     }
 
     /// The offset from its cell's centre of sub-cell `k`'s centre: what [`split_point`] gives
@@ -320,7 +346,7 @@ impl SnappedWindows {
         (k as f64 + 0.5) / n as f64 - 0.5
     }
 
-    /// Window `i` (see [`Brick::place_snapped`]).
+    /// Window `i` (see [`Self::place`]).
     #[inline(always)]
     fn window<const W3: usize>(&self, i: usize) -> &[i32; W3] {
         self.values[i * W3..(i + 1) * W3].try_into().expect("W3 values per window")
@@ -404,8 +430,9 @@ mod tests {
     use super::*;
     use crate::core::evidence::to_cell_units;
 
-    /// Every sub-cell position, in cells of either sign: the integer placement finds the brick
-    /// index and regions of [`Brick::place`], and the precomputed window is the computed one.
+    /// Every sub-cell position in every cell of a block, in blocks of either sign: the table
+    /// placement finds the brick index and regions of [`Brick::place`], and the precomputed
+    /// window is the computed one.
     fn snapped_equals_computed<const W: usize, const W3: usize>(ell_m: f64, n: u32) {
         let geo = PairGeometry::new(0.1, ell_m, n);
         let table = KernelTable::new();
@@ -418,16 +445,16 @@ mod tests {
         let n = n as usize;
         for block in [[0, 0, 0], [-1, 2, -3]] {
             let origin = block.map(|b| b * BLOCK_EDGE);
-            for sub in 0..n * n * n {
+            for (sub, shift) in (0..n * n * n).flat_map(|sub| (0..B).map(move |s| (sub, s))) {
                 let k = [sub % n, sub / n % n, sub / (n * n)];
-                // A point in cell (k + 3) mod 8 of the block, at sub-cell k.
-                let cell = [0, 1, 2].map(|a| origin[a] + ((k[a] + 3) % B) as i32);
+                // A point in cell (k + shift + a) mod 8 of the block along axis a, at sub-cell k.
+                let cell = [0, 1, 2].map(|a| origin[a] + ((k[a] + shift + a) % B) as i32);
                 let metres: [f64; 3] = std::array::from_fn(|a| {
                     (f64::from(cell[a]) + (k[a] as f64 + 0.3) / n as f64) * geo.res_m
                 });
                 let p = to_cell_units(metres, &geo);
                 let pl = brick.place::<W>(p, origin, geo.ell_cells);
-                let (at, regions, i) = brick.place_snapped::<W>(p, origin, &windows);
+                let (at, regions, i) = windows.place(p);
                 assert_eq!((at, regions), (pl.at, pl.regions), "n {n}, sub-cell {k:?}");
                 let mut computed = [0i32; W3];
                 window_values_portable::<W, W3>(
@@ -448,6 +475,19 @@ mod tests {
         }
         snapped_equals_computed::<6, 216>(0.3, 8);
         snapped_equals_computed::<3, 27>(0.14, 8);
+    }
+
+    /// The brick margin of a window of width W is ⌈W/2⌉, which `Brick::add_points` and the fold
+    /// rely on to know the brick's edge at compile time.
+    #[test]
+    fn margins_follow_from_widths() {
+        for i in 1..=3000 {
+            let ell_cells = f64::from(i) * 0.001;
+            if let Some((w, m)) = window_shape(ell_cells) {
+                assert_eq!(m, w.div_ceil(2), "ell {ell_cells} cells");
+            }
+        }
+        assert_eq!(window_shape(2.0), Some((4, 2)), "la3dm's geometry");
     }
 
     #[test]
