@@ -307,7 +307,9 @@ pub fn to_cell_units(p_m: [f64; 3], geo: &PairGeometry) -> [f64; 3] {
         return cells;
     }
     let n = f64::from(geo.sub_cells);
-    cells.map(|v| (floor_i64(v * n) as f64 + 0.5) / n)
+    // `/ n` is `* (1/n)` exactly (n is a power of two), and a multiplication is cheaper.
+    let inv_n = 1.0 / n;
+    cells.map(|v| (floor_i64(v * n) as f64 + 0.5) * inv_n)
 }
 
 /// `floor` to i64 without a libm call (baseline x86-64 has no SSE4.1 `roundsd`): truncate,
@@ -371,6 +373,10 @@ pub struct PairGeometry {
 
 impl PairGeometry {
     pub fn new(res_m: f64, ell_m: f64, sub_cells: u32) -> Self {
+        assert!(
+            sub_cells == 0 || sub_cells.is_power_of_two(),
+            "sub_cells {sub_cells} is not 0 or a power of two"
+        );
         let ell_cells = ell_m / res_m;
         Self {
             res_m,

@@ -73,14 +73,16 @@ pub struct Scatter {
     grid: SlotGrid,
     /// Per point: its bucket (block slot).
     bucket_of: Vec<u32>,
-    /// Bucket start offsets into `order` (counting sort).
+    /// Bucket start offsets into `cells_sorted` (counting sort), and the next free place of
+    /// each bucket while sorting.
     starts: Vec<u32>,
-    order: Vec<u32>,
+    next: Vec<u32>,
     /// Per bucket: delta-block index of each neighbour offset ((2M+1)³ entries, M = ⌈R/B⌉).
     neighbours: Vec<u32>,
     delta: SlotGrid,
     spare: Vec<Box<DeltaBlock>>,
     cells: Vec<CellPoint>,
+    /// The points of the current tile in bucket order.
     cells_sorted: Vec<CellPoint>,
     brick: Brick,
     /// The precomputed windows of points at sub-cell centres (built on first use).
@@ -203,7 +205,7 @@ impl Scatter {
             slots.reset(lo.map(|v| v - m), hi.map(|v| v + m));
             let mut taken = std::mem::take(&mut self.taken);
             let mut target = SinkTarget { slots: &mut slots, taken: &mut taken, sink: &mut *sink };
-            self.windows_of_width(w, tile, geo, table, margin, &mut target);
+            self.windows_of_width(w, geo, table, margin, &mut target);
             for (key, block) in taken.drain(..) {
                 sink.put_block(key, block);
             }
@@ -241,10 +243,10 @@ impl Scatter {
                 let mut delta = std::mem::take(&mut self.delta);
                 let mut spare = std::mem::take(&mut self.spare);
                 let mut target = DeltaTarget { delta: &mut delta, spare: &mut spare };
-                self.windows_of_width(w, pts, geo, table, margin, &mut target);
+                self.windows_of_width(w, geo, table, margin, &mut target);
                 (self.delta, self.spare) = (delta, spare);
             }
-            None => self.stencils(pts, geo, table, r, m),
+            None => self.stencils(geo, table, r, m),
         }
         let blocks = std::mem::take(&mut self.delta.blocks);
         let rows = std::mem::take(&mut self.delta.rows);
@@ -260,7 +262,7 @@ impl Scatter {
     }
 
     /// The general path: per point, the rows of its stencil inside the ball.
-    fn stencils(&mut self, pts: &[CellPoint], geo: &PairGeometry, table: &KernelTable, r: i32, m: i32) {
+    fn stencils(&mut self, geo: &PairGeometry, table: &KernelTable, r: i32, m: i32) {
         let side = (2 * m + 1) as usize;
         for s in 0..self.grid.slots.len() {
             let (start, end) = (self.starts[s] as usize, self.starts[s + 1] as usize);
@@ -272,7 +274,7 @@ impl Scatter {
             self.neighbours.resize(side * side * side, NO_SLOT);
             let mut target = Targets { block, m, side, scatter: self };
             for k in start..end {
-                let (p, hit) = pts[target.scatter.order[k] as usize];
+                let (p, hit) = target.scatter.cells_sorted[k];
                 scatter_point(&mut target, p, hit, r, geo, table);
             }
         }
@@ -281,7 +283,6 @@ impl Scatter {
     /// The lane-wise path ([`super::window`]): one brick per bucket, folded into `target`.
     fn windows<const W: usize, const W3: usize>(
         &mut self,
-        pts: &[CellPoint],
         geo: &PairGeometry,
         table: &KernelTable,
         margin: usize,
@@ -289,10 +290,8 @@ impl Scatter {
     ) {
         self.brick.reset(margin);
         let snapped = self.snapped.prepare::<W, W3>(geo, table);
-        // Points in bucket order, so each bucket reads one contiguous run.
-        let mut sorted = std::mem::take(&mut self.cells_sorted);
-        sorted.clear();
-        sorted.extend(self.order.iter().map(|&i| pts[i as usize]));
+        // Points in bucket order (see `bucket`), so each bucket reads one contiguous run.
+        let sorted = std::mem::take(&mut self.cells_sorted);
         for s in 0..self.grid.slots.len() {
             let (start, end) = (self.starts[s] as usize, self.starts[s + 1] as usize);
             if start == end {
@@ -318,19 +317,18 @@ impl Scatter {
     fn windows_of_width(
         &mut self,
         w: usize,
-        pts: &[CellPoint],
         geo: &PairGeometry,
         table: &KernelTable,
         margin: usize,
         target: &mut impl FoldTarget,
     ) {
         match w {
-            1 => self.windows::<1, 1>(pts, geo, table, margin, target),
-            2 => self.windows::<2, 8>(pts, geo, table, margin, target),
-            3 => self.windows::<3, 27>(pts, geo, table, margin, target),
-            4 => self.windows::<4, 64>(pts, geo, table, margin, target),
-            5 => self.windows::<5, 125>(pts, geo, table, margin, target),
-            _ => self.windows::<6, 216>(pts, geo, table, margin, target),
+            1 => self.windows::<1, 1>(geo, table, margin, target),
+            2 => self.windows::<2, 8>(geo, table, margin, target),
+            3 => self.windows::<3, 27>(geo, table, margin, target),
+            4 => self.windows::<4, 64>(geo, table, margin, target),
+            5 => self.windows::<5, 125>(geo, table, margin, target),
+            _ => self.windows::<6, 216>(geo, table, margin, target),
         }
     }
 
@@ -341,7 +339,8 @@ impl Scatter {
         [0, 1, 2].map(|i| (i64::from(self.grid.min[i]) + o[i]) as i32)
     }
 
-    /// Counting sort of point indices by the block slot of their cell.
+    /// Counting sort of the points by the block slot of their cell, into `cells_sorted` (so a
+    /// bucket is one contiguous run, from `starts[s]` to `starts[s + 1]`).
     fn bucket(&mut self, pts: &[CellPoint], lo: [i32; 3], hi: [i32; 3]) {
         self.grid.reset(lo, hi);
         let n_slots = self.grid.slots.len();
@@ -357,12 +356,15 @@ impl Scatter {
         for s in 0..n_slots {
             self.starts[s + 1] += self.starts[s];
         }
-        self.order.clear();
-        self.order.resize(pts.len(), 0);
-        let mut next: Vec<u32> = self.starts[..n_slots].to_vec();
-        for (i, &s) in self.bucket_of.iter().enumerate() {
-            self.order[next[s as usize] as usize] = i as u32;
-            next[s as usize] += 1;
+        let next = &mut self.next;
+        next.clear();
+        next.extend_from_slice(&self.starts[..n_slots]);
+        self.cells_sorted.clear();
+        self.cells_sorted.resize(pts.len(), ([0.0; 3], false));
+        for (&s, &point) in self.bucket_of.iter().zip(pts) {
+            let at = &mut next[s as usize];
+            self.cells_sorted[*at as usize] = point;
+            *at += 1;
         }
     }
 }
@@ -532,6 +534,11 @@ fn fold_region<const N: usize, const M: usize>(
     let at = |zi: usize, yi: usize| ((z.0 + zi) * e + y.0 + yi) * e + x.0;
     // Rows with mass, bit 8z + y (a region is at most 8 × 8 rows).
     let mut rows = 0u64;
+    // Every row of the region lies before the last one's end: checked once here, which spares
+    // the rows most of their own bounds checks (fold: 149 -> 129 M instructions over 48 sample
+    // scans, callgrind).
+    let end = at(z.2 - 1, y.2 - 1) + N;
+    let (a, b) = (&mut a[..end], &mut b[..end]);
     for zi in 0..z.2 {
         for yi in 0..y.2 {
             let i = at(zi, yi);
@@ -663,18 +670,19 @@ fn scatter_point_n<const N: usize>(
 /// Largest stencil edge, 2R + 1 for R = ⌊MAX_ELL_IN_CELLS + ½⌋.
 const MAX_STENCIL: usize = 2 * (super::params::MAX_ELL_IN_CELLS as usize) + 3;
 
-/// Block-key bounds of the points' own cells.
+/// Block-key bounds of the points' own cells (the floor of the least and greatest coordinates:
+/// floor is monotone, so one floor per axis, not one per point).
 fn block_bounds(pts: &[CellPoint]) -> ([i32; 3], [i32; 3]) {
-    let mut lo = [i32::MAX; 3];
-    let mut hi = [i32::MIN; 3];
+    let mut lo = [f64::INFINITY; 3];
+    let mut hi = [f64::NEG_INFINITY; 3];
     for (p, _) in pts {
-        let (c, _) = split_point(*p);
         for i in 0..3 {
-            lo[i] = lo[i].min(c[i] >> BLOCK_SHIFT);
-            hi[i] = hi[i].max(c[i] >> BLOCK_SHIFT);
+            lo[i] = lo[i].min(p[i]);
+            hi[i] = hi[i].max(p[i]);
         }
     }
-    (lo, hi)
+    let block = |v: f64| super::evidence::floor_i32(v) >> BLOCK_SHIFT;
+    (lo.map(block), hi.map(block))
 }
 
 /// Length of the next tile (as many points as keep both slot grids within `MAX_SLOTS`) and
