@@ -312,13 +312,16 @@ pub fn to_cell_units(p_m: [f64; 3], geo: &PairGeometry) -> [f64; 3] {
     cells.map(|v| (floor_i64(v * n) as f64 + 0.5) * inv_n)
 }
 
-/// `floor` to i64 without a libm call (baseline x86-64 has no SSE4.1 `roundsd`): truncate,
-/// then step down for negative non-integers. Exact for |v| < 2^53 (every point inside the key
-/// range); saturates beyond i64.
+/// `floor` to i64 without a libm call (baseline x86-64 has no SSE4.1 `roundsd`) and without a
+/// saturating conversion (`as` adds two compares and two selects for NaN and overflow): round to
+/// the nearest integer ([`round_to_i64`]), then step down where that rounded up. Exact for
+/// |v| < 2^51, which every caller's values are (points inside the voxel key range; the
+/// callers range-test anything else first).
 #[inline(always)]
 pub(crate) fn floor_i64(v: f64) -> i64 {
-    let t = v as i64;
-    if t as f64 > v { t - 1 } else { t }
+    debug_assert!(v.abs() < (1u64 << 51) as f64, "floor of {v} out of range");
+    let r = super::kernel::round_to_i64(v);
+    if r as f64 > v { r - 1 } else { r }
 }
 
 /// A training set as labelled points in cell units (hits first, `true`), replacing `out`.
@@ -328,12 +331,11 @@ pub fn labelled_cell_points(set: &TrainingSet, geo: &PairGeometry, out: &mut Vec
     out.extend(set.frees.iter().map(|&p| (to_cell_units(p, geo), false)));
 }
 
-/// Floor to i32 without a libm call (baseline x86-64 has no SSE4.1 `roundsd`); exact for the
-/// key range (|v| < 2^31).
+/// [`floor_i64`] for values whose floor fits an i32 (|v| < 2^31: the key range).
 #[inline(always)]
 pub fn floor_i32(v: f64) -> i32 {
-    let i = v as i32;
-    if f64::from(i) > v { i - 1 } else { i }
+    debug_assert!(v.abs() < (1u64 << 31) as f64, "floor of {v} out of range");
+    floor_i64(v) as i32
 }
 
 /// A training point (cell units) split into its cell and its offset from that cell's centre:
@@ -634,6 +636,30 @@ mod tests {
             to_cell_units([0.123, -0.05, 7.0], &PairGeometry::new(0.1, 0.2, 0)),
             [0.123 / 0.1, -0.5, 70.0]
         );
+    }
+
+    /// The branch-free floors equal `f64::floor` at and around integers, halves and the ends of
+    /// their ranges, for both signs.
+    #[test]
+    fn floors_are_exact() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
+        let near =
+            |v: f64| [v, f64::from_bits(v.to_bits() + 1), f64::from_bits(v.to_bits().saturating_sub(1))];
+        let mut values = vec![0.0, -0.0, f64::MIN_POSITIVE, -f64::MIN_POSITIVE, 0.5, -0.5];
+        for k in [1.0, 2.0, 3.0, 7.5, 1e6, 1048576.5, 2f64.powi(30), 2f64.powi(50) + 0.5] {
+            for v in near(k).into_iter().chain(near(-k)) {
+                values.push(v);
+            }
+        }
+        values.extend((0..100_000).map(|_| rng.random_range(-1e7..1e7)));
+        values.extend((0..100_000).map(|_| f64::from(rng.random_range(-1000..1000)) * 0.1));
+        for v in values {
+            assert_eq!(floor_i64(v), v.floor() as i64, "{v:e}");
+            if v.abs() < 2f64.powi(31) {
+                assert_eq!(floor_i32(v), v.floor() as i32, "{v:e}");
+            }
+        }
     }
 
     #[test]
