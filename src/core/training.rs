@@ -112,8 +112,9 @@ impl VoxelCentroids {
     }
 
     /// Adds every point of `points`, in order; returns how many were left out because their
-    /// voxel key is outside the packable range (or not a number).
-    fn add_all(&mut self, points: &[[f64; 3]], inv_ds: f64) -> usize {
+    /// voxel key is outside the packable range (or not a number). With `CHECKED` false every
+    /// point must lie inside it (the caller bounded them; debug-asserted), and is not tested.
+    fn add_all<const CHECKED: bool>(&mut self, points: &[[f64; 3]], inv_ds: f64) -> usize {
         let mut rejected = 0;
         let mut keys = [None::<u64>; ADD_BATCH];
         let mut homes = [0usize; ADD_BATCH];
@@ -122,11 +123,13 @@ impl VoxelCentroids {
                 self.grow(self.sums.len() + chunk.len());
             }
             let mask = self.slots.len() - 1;
+            // A slice `mask + 1` long, so that an index `& mask` needs no bounds check.
+            let slots = &self.slots[..=mask];
             for ((k, h), &p) in keys.iter_mut().zip(&mut homes).zip(chunk) {
-                *k = voxel_key(p, inv_ds);
+                *k = if CHECKED { voxel_key(p, inv_ds) } else { Some(voxel_key_in_range(p, inv_ds)) };
                 if let Some(k) = *k {
                     *h = slot_of(k, mask);
-                    super::simd::prefetch(&self.slots[*h]);
+                    super::simd::prefetch(&slots[*h]);
                 }
             }
             for ((&k, &h), &p) in keys.iter().zip(&homes).zip(chunk) {
@@ -139,14 +142,24 @@ impl VoxelCentroids {
         rejected
     }
 
+    /// [`Self::add_all`] of free samples, without range tests when they are `bounded`.
+    fn add_samples(&mut self, samples: &[[f64; 3]], inv_ds: f64, bounded: bool) {
+        if bounded {
+            self.add_all::<false>(samples, inv_ds);
+        } else {
+            self.add_all::<true>(samples, inv_ds);
+        }
+    }
+
     /// Adds `p` to the voxel `key`, probing from its home slot `home`.
     #[inline]
     fn insert(&mut self, key: u64, home: usize, p: [f64; 3], mask: usize) {
-        let mut i = home;
+        let slots = &mut self.slots[..=mask];
+        let mut i = home & mask;
         loop {
-            let s = self.slots[i];
+            let s = slots[i];
             if s.index == 0 {
-                self.slots[i] = Slot { key, index: self.sums.len() as u32 + 1 };
+                slots[i] = Slot { key, index: self.sums.len() as u32 + 1 };
                 self.keys.push(key);
                 self.sums.push((p, 1));
                 return;
@@ -188,6 +201,17 @@ impl VoxelCentroids {
 #[inline(always)]
 fn slot_of(key: u64, mask: usize) -> usize {
     (key.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 32) as usize & mask
+}
+
+/// [`voxel_key`] of a point known to lie inside ±2^20 voxels (no range test).
+#[inline]
+fn voxel_key_in_range(p: [f64; 3], inv_ds: f64) -> u64 {
+    debug_assert!(voxel_key(p, inv_ds).is_some(), "point outside the key range: {p:?}");
+    let mut key = 0u64;
+    for v in p {
+        key = (key << KEY_BITS) | ((super::evidence::floor_i64(v * inv_ds) + KEY_LIMIT as i64) as u64);
+    }
+    key
 }
 
 /// The voxel `floor(p / ds)` packed as three 21-bit fields, or `None` outside ±2^20 voxels.
@@ -247,7 +271,7 @@ impl TrainingBuilder {
         for chunk in points_world.chunks(SAMPLE_BUFFER) {
             self.samples.clear();
             self.samples.extend(chunk.iter().map(|p| p.map(f64::from)));
-            out.dropped_points += self.hits.add_all(&self.samples, inv_ds);
+            out.dropped_points += self.hits.add_all::<true>(&self.samples, inv_ds);
         }
         self.hits.centroids_into(&mut self.centroids);
         out.hit_voxels = self.centroids.len();
@@ -255,6 +279,14 @@ impl TrainingBuilder {
         let fr = params.free_resolution_m;
         self.samples.clear();
         let max_r = params.max_range_m;
+        // A ray's samples lie within its length of the origin: when that stays a voxel short of
+        // the key range on every axis, they need no range test (almost always: ±2^20 voxels is
+        // ±105 km at 0.1 m).
+        let o_max = o.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        let finite = o.iter().all(|v| v.is_finite());
+        let in_range = |len: f64| finite && (o_max + len) * inv_ds < KEY_LIMIT - 1.0;
+        // Whether every sample in `samples` is known to be in range.
+        let mut bounded = in_range(0.0);
         for &h in &self.centroids {
             let v = [h[0] - o[0], h[1] - o[1], h[2] - o[2]];
             let r = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
@@ -271,16 +303,18 @@ impl TrainingBuilder {
             if r > 0.0 {
                 let n = [v[0] / r, v[1] / r, v[2] / r];
                 free_samples(&mut self.samples, o, n, ray_len, fr);
+                bounded &= in_range(ray_len);
                 if self.samples.len() >= SAMPLE_BUFFER {
-                    self.frees.add_all(&self.samples, inv_ds);
+                    self.frees.add_samples(&self.samples, inv_ds, bounded);
                     self.samples.clear();
+                    bounded = in_range(0.0);
                 }
             }
         }
         if params.origin_as_free {
             self.samples.push(o);
         }
-        self.frees.add_all(&self.samples, inv_ds);
+        self.frees.add_samples(&self.samples, inv_ds, bounded);
         self.frees.centroids_into(&mut out.frees);
     }
 }
@@ -375,7 +409,7 @@ mod tests {
                 })
                 .collect();
             table.clear();
-            let rejected = table.add_all(&pts, inv_ds);
+            let rejected = table.add_all::<true>(&pts, inv_ds);
             let mut order = Vec::new();
             let mut sums = std::collections::HashMap::<u64, ([f64; 3], u32)>::new();
             let mut want_rejected = 0;
@@ -402,6 +436,58 @@ mod tests {
             let mut got = Vec::new();
             table.centroids_into(&mut got);
             assert_eq!(got, want, "round {round}");
+            // Without range tests, for the points inside the range: the same table.
+            let inside: Vec<[f64; 3]> =
+                pts.iter().copied().filter(|&p| voxel_key(p, inv_ds).is_some()).collect();
+            let mut unchecked = VoxelCentroids::default();
+            assert_eq!(unchecked.add_all::<false>(&inside, inv_ds), 0);
+            let mut got_unchecked = Vec::new();
+            unchecked.centroids_into(&mut got_unchecked);
+            assert_eq!(got_unchecked, want, "round {round}, unchecked");
+        }
+    }
+
+    /// Rays near the end of the voxel key range take the range-tested path, and their samples
+    /// beyond it are left out: the training set equals one built by adding every sample with
+    /// its range test.
+    #[test]
+    fn rays_near_the_key_range_limit() {
+        let edge = KEY_LIMIT * 0.1;
+        let params = MapParams { max_range_m: 0.0, ..Default::default() };
+        // A sensor just beyond the range (its first samples are too), one just inside it, one
+        // near the other end, and one at home.
+        for origin in
+            [[edge + 1.0, 0.0, 0.0], [edge - 4.0, 0.0, 0.0], [-edge + 1.0, 3.0, -2.0], [1.0, 2.0, 3.0]]
+        {
+            let toward = if origin[0] > 0.0 { -1.0 } else { 1.0 };
+            let pts: Vec<[f32; 3]> = (0..200)
+                .map(|i| {
+                    let a = f64::from(i) * 0.031;
+                    [origin[0] + toward * (3.0 + a.cos()), origin[1] + 3.5 * a.sin(), origin[2] + 0.3]
+                        .map(|v| v as f32)
+                })
+                .collect();
+            let got = TrainingBuilder::default().build(&pts, origin, &params);
+            // The reference: every sample through the range-tested table.
+            let mut hits = VoxelCentroids::default();
+            let raw: Vec<[f64; 3]> = pts.iter().map(|p| p.map(f64::from)).collect();
+            hits.add_all::<true>(&raw, 10.0);
+            let mut centroids = Vec::new();
+            hits.centroids_into(&mut centroids);
+            let mut samples = Vec::new();
+            for h in &centroids {
+                let v = [h[0] - origin[0], h[1] - origin[1], h[2] - origin[2]];
+                let r = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+                free_samples(&mut samples, origin, v.map(|c| c / r), r, params.free_resolution_m);
+            }
+            samples.push(origin);
+            let mut frees = VoxelCentroids::default();
+            let rejected = frees.add_all::<true>(&samples, 10.0);
+            let mut want = Vec::new();
+            frees.centroids_into(&mut want);
+            assert_eq!(got.frees, want, "origin {origin:?}");
+            assert_eq!(got.hits, centroids, "origin {origin:?}");
+            assert_eq!(rejected > 0, origin[0] > edge, "samples beyond the key range, origin {origin:?}");
         }
     }
 
