@@ -676,9 +676,11 @@ fn block_bounds(pts: &[CellPoint]) -> ([i32; 3], [i32; 3]) {
     let mut lo = [f64::INFINITY; 3];
     let mut hi = [f64::NEG_INFINITY; 3];
     for (p, _) in pts {
+        // Plain comparisons, not `f64::min` (whose NaN rules cost instructions; the points are
+        // finite).
         for i in 0..3 {
-            lo[i] = lo[i].min(p[i]);
-            hi[i] = hi[i].max(p[i]);
+            lo[i] = if p[i] < lo[i] { p[i] } else { lo[i] };
+            hi[i] = if p[i] > hi[i] { p[i] } else { hi[i] };
         }
     }
     let block = |v: f64| super::evidence::floor_i32(v) >> BLOCK_SHIFT;
