@@ -332,7 +332,7 @@ impl SnappedWindows {
         for a in 0..3 {
             let sub = round_to_i64(p[a] * n - 0.5);
             debug_assert!((sub as f64 + 0.5) / n == p[a], "point not at a sub-cell centre: {p:?}");
-            let (step, spread) = self.places[(sub & ((B as i64) << self.shift) - 1) as usize][a];
+            let (step, spread) = self.places[(sub & (((B as i64) << self.shift) - 1)) as usize][a];
             at += step as usize;
             regions &= spread;
             window |= ((sub & ((1 << self.shift) - 1)) as usize) << (self.shift as usize * a);
