@@ -331,7 +331,8 @@ pub fn labelled_cell_points(set: &TrainingSet, geo: &PairGeometry, out: &mut Vec
     out.extend(set.frees.iter().map(|&p| (to_cell_units(p, geo), false)));
 }
 
-/// [`floor_i64`] for values whose floor fits an i32 (|v| < 2^31: the key range).
+/// `floor` for values whose floor fits an i32 (|v| < 2^31: the key range), computed as the
+/// crate's `floor_i64` computes it.
 #[inline(always)]
 pub fn floor_i32(v: f64) -> i32 {
     debug_assert!(v.abs() < (1u64 << 31) as f64, "floor of {v} out of range");

@@ -14,7 +14,7 @@
 //! per map geometry by the same arithmetic, then read and added — on the sample scans that cut
 //! evidence by 30–40% (2026-12-03: 1.55 → 0.95–1.10 ms per scan, the two binaries alternated
 //! five and eight times), on the dense drive 68–72 → 38–48 ms. Placing
-//! such a point is integer arithmetic too, read from a table ([`SnappedWindows::place`]): the
+//! such a point is integer arithmetic too, read from a table (`SnappedWindows::place`): the
 //! float-to-int casts of `Brick::place` (saturating, NaN-checked) cost as much as the old
 //! window's lookups.
 //!
