@@ -51,6 +51,30 @@
 //! read from a table ([`super::window::SnappedWindows`]); the lookups + adds and the window
 //! placement (~35% above) became ~20% of the sample ingest, and the fold (~20%) and the voxel
 //! table (~19%) are now the largest parts (perf, same drive).
+//!
+//! 2026-12-04, counted with callgrind (`bench ingest` of the 12 sample scans, `--repeat 3`: 48
+//! scans; instruction counts are stable on this noisy VM where times move ±30%): the whole run
+//! went from 433 to 326 M instructions. Of what is left per scan (~6.6 M): training ~2.0 M,
+//! folds ~1.8 M plus ~0.9 M of zeroing new blocks, window adds ~0.8 M, bucketing ~0.5 M,
+//! cell-unit conversion ~0.3 M. What did it: tabulated placement and a brick edge known at
+//! compile time (add_points 78 → 38 M), the fold's rows of fixed width bounds-checked once per
+//! region (149 → 129 M), floors without saturating casts (−11 M), points counted straight into
+//! bucket order, no emptiness test on blocks put back. Measured and not kept:
+//! - cutting every window into its shares per block (≤ 8; 2.32 per point here), sorting the
+//!   shares by block and folding one block-sized brick per block, so that every map row is
+//!   written once per scan and no margin is folded: the fold fell from ~113 to ~18 M, but
+//!   finding and sorting the shares (~1.8 M per scan) and adding clipped rows (251
+//!   instructions per share) cost more: 307 → 365 M for the evidence, 0.89–1.01 against
+//!   0.71–0.89 ms (alternated); the row work of the margins is cheaper than cutting windows;
+//! - a mask of the brick planes and one of its rows that windows touched (two ORs a window),
+//!   so a fold reads only rows in both: 351 → 360 M (the sample buckets are dense enough that
+//!   the masks are full, and iterating their bits costs more than counting);
+//! - a fold region's rows as `chunks_exact` of the brick edge (no bounds checks at all): 129 →
+//!   131 M, the iterator costs more than the checks;
+//! - building everything for x86-64-v3 (AVX2, BMI2): no difference the host's noise resolved
+//!   (three alternations); the hot loops are scalar or 4 lanes wide;
+//! - all folds into one scratch block (wrong results, to time the map's memory): evidence
+//!   0.48–0.54 against 0.60 ms, so misses on the map's blocks are about a sixth of it.
 
 use super::evidence::{BlockEvidence, DeltaBlock, PairGeometry, RowMask, ScanDelta, split_point};
 use super::kernel::KernelTable;

@@ -63,7 +63,11 @@ impl TrainingSet {
 /// 1/8 full in one pass instead of slot by slot: 30 → 19–20 and 0.40 → 0.35 ms. Tried after
 /// it and not kept: keys of the whole call first, then each home slot prefetched 16 points
 /// ahead of its insert (with or without the voxel's sum prefetched 8 ahead): dense training
-/// 21–23 against 19–22 ms, sample scans 0.29 against 0.27 ms, so rounds stay.
+/// 21–23 against 19–22 ms, sample scans 0.29 against 0.27 ms, so rounds stay. Tried 2026-12-04
+/// and not kept: a round in three passes (keys and home slots; find or create each voxel in
+/// order and prefetch its sum; then add in order), so the misses on the sums overlap too:
+/// training 0.28–0.30 against 0.26–0.34 ms (five alternations), the extra pass cost what the
+/// overlap saved.
 #[derive(Debug, Default)]
 pub struct VoxelCentroids {
     /// The open-addressing table: the voxel key and its index into `sums` + 1 (0 = empty),
