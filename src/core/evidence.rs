@@ -319,9 +319,13 @@ pub fn to_cell_units(p_m: [f64; 3], geo: &PairGeometry) -> [f64; 3] {
 /// callers range-test anything else first).
 #[inline(always)]
 pub(crate) fn floor_i64(v: f64) -> i64 {
+    use super::kernel::ROUND_MAGIC;
     debug_assert!(v.abs() < (1u64 << 51) as f64, "floor of {v} out of range");
-    let r = super::kernel::round_to_i64(v);
-    if r as f64 > v { r - 1 } else { r }
+    // `t`'s low mantissa bits hold round(v), and `t − 1.5·2^52` is round(v) as a double, exactly
+    // (no integer-to-float conversion): all of it vectorises, even on baseline x86-64.
+    let t = v + ROUND_MAGIC;
+    let r = t.to_bits() as i64 - ROUND_MAGIC.to_bits() as i64;
+    r - i64::from(t - ROUND_MAGIC > v)
 }
 
 /// A training set as labelled points in cell units (hits first, `true`), replacing `out`.

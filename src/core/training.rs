@@ -122,6 +122,7 @@ impl VoxelCentroids {
         let mut rejected = 0;
         let mut keys = [None::<u64>; ADD_BATCH];
         let mut homes = [0usize; ADD_BATCH];
+        let mut unchecked = [0u64; ADD_BATCH];
         for chunk in points.chunks(ADD_BATCH) {
             if 2 * (self.sums.len() + chunk.len()) > self.slots.len() {
                 self.grow(self.sums.len() + chunk.len());
@@ -129,8 +130,14 @@ impl VoxelCentroids {
             let mask = self.slots.len() - 1;
             // A slice `mask + 1` long, so that an index `& mask` needs no bounds check.
             let slots = &self.slots[..=mask];
-            for ((k, h), &p) in keys.iter_mut().zip(&mut homes).zip(chunk) {
-                *k = if CHECKED { voxel_key(p, inv_ds) } else { Some(voxel_key_in_range(p, inv_ds)) };
+            if !CHECKED {
+                // A loop of its own, without branches, so that it vectorises.
+                for (k, &p) in unchecked.iter_mut().zip(chunk) {
+                    *k = voxel_key_in_range(p, inv_ds);
+                }
+            }
+            for (((k, h), &p), &u) in keys.iter_mut().zip(&mut homes).zip(chunk).zip(&unchecked) {
+                *k = if CHECKED { voxel_key(p, inv_ds) } else { Some(u) };
                 if let Some(k) = *k {
                     *h = slot_of(k, mask);
                     super::simd::prefetch(&slots[*h]);
