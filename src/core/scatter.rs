@@ -370,11 +370,15 @@ impl Scatter {
         let n_slots = self.grid.slots.len();
         self.starts.clear();
         self.starts.resize(n_slots + 1, 0);
+        // Slots in a loop of their own (no pushes or counts in it), so that its floors
+        // vectorise; then the counts.
         self.bucket_of.clear();
-        for (p, _) in pts {
-            let (c, _) = split_point(*p);
-            let s = self.grid.index(c.map(|v| v >> BLOCK_SHIFT)) as u32;
-            self.bucket_of.push(s);
+        let grid = &self.grid;
+        self.bucket_of.extend(pts.iter().map(|(p, _)| {
+            let c = p.map(super::evidence::floor_i32);
+            grid.index(c.map(|v| v >> BLOCK_SHIFT)) as u32
+        }));
+        for &s in &self.bucket_of {
             self.starts[s as usize + 1] += 1;
         }
         for s in 0..n_slots {
