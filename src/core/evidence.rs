@@ -314,9 +314,9 @@ pub fn to_cell_units(p_m: [f64; 3], geo: &PairGeometry) -> [f64; 3] {
 
 /// `floor` to i64 without a libm call (baseline x86-64 has no SSE4.1 `roundsd`) and without a
 /// saturating conversion (`as` adds two compares and two selects for NaN and overflow): round to
-/// the nearest integer ([`round_to_i64`]), then step down where that rounded up. Exact for
-/// |v| < 2^51, which every caller's values are (points inside the voxel key range; the
-/// callers range-test anything else first).
+/// the nearest integer by adding 1.5·2^52, as [`round_to_i64`](super::kernel::round_to_i64)
+/// does, then step down where that rounded up. Exact for |v| < 2^51, which every caller's values
+/// are (points inside the voxel key range; the callers range-test anything else first).
 #[inline(always)]
 pub(crate) fn floor_i64(v: f64) -> i64 {
     use super::kernel::ROUND_MAGIC;
