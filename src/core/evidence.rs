@@ -147,16 +147,15 @@ impl BlockEvidence {
     }
 
     /// Adds the brick rows `a` (hit mass) and `b` (free mass) to the cells `at..at + N` and
-    /// zeroes them. Brick masses are never negative (sums of kernel values), so they widen
-    /// with zeros, which baseline x86-64 does in one instruction where sign extension takes
-    /// several.
+    /// zeroes them. Brick masses are never negative (sums of kernel values), so they are `u32`
+    /// and widen with zeros, which baseline x86-64 does in one instruction where sign
+    /// extension takes several.
     #[inline(always)]
-    pub(crate) fn fold_row<const N: usize>(&mut self, at: usize, a: &mut [i32; N], b: &mut [i32; N]) {
+    pub(crate) fn fold_row<const N: usize>(&mut self, at: usize, a: &mut [u32; N], b: &mut [u32; N]) {
         let dst: &mut [Evidence; N] = (&mut self.cells[at..at + N]).try_into().expect("N cells");
         for i in 0..N {
-            debug_assert!(a[i] >= 0 && b[i] >= 0, "brick masses are not negative");
-            dst[i].a += i64::from(a[i] as u32);
-            dst[i].b += i64::from(b[i] as u32);
+            dst[i].a += i64::from(a[i]);
+            dst[i].b += i64::from(b[i]);
         }
         (*a, *b) = ([0; N], [0; N]);
     }

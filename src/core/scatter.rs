@@ -11,8 +11,9 @@
 //! [`KernelTable::quantized_coord`], so the result equals the brute-force reference bit for bit.
 //!
 //! Kernel lengths up to 3 cells (la3dm's defaults are 2) take the lane-wise path of
-//! [`super::window`]: fixed W³ windows per point in a per-bucket brick. Longer kernels take the
-//! stencil path below.
+//! [`super::window`]: fixed W³ windows per point in a per-bucket brick, a bucket being
+//! [`S`](super::window::S)³ blocks. Longer kernels take the stencil path below, bucketed by
+//! block.
 //!
 //! On one thread, [`Scatter::add_into`] folds the bricks straight into the blocks of a
 //! [`BlockSink`] (the map or an edit of it): each block is taken out once per tile, changed in
@@ -80,7 +81,7 @@ use super::evidence::{BlockEvidence, DeltaBlock, PairGeometry, RowMask, ScanDelt
 use super::kernel::KernelTable;
 use super::key::{BLOCK_EDGE, BLOCK_SHIFT, BlockKey, CellKey};
 use super::map::BlockSink;
-use super::window::{Brick, SnappedWindows, window_shape};
+use super::window::{Brick, S, SB, SnappedWindows, window_shape};
 use std::sync::Arc;
 
 /// Above this many block slots the scan is split into tiles of points.
@@ -223,10 +224,9 @@ impl Scatter {
         while !rest.is_empty() {
             let (n, (lo, hi)) = tile_len(rest, r);
             let (tile, tail) = rest.split_at(n);
-            self.bucket(tile, lo, hi);
-            let m = (r.max(margin as i32) + B - 1) / B;
+            let blocks = self.bucket_windows(tile, lo, hi);
             let mut slots = std::mem::take(&mut self.delta);
-            slots.reset(lo.map(|v| v - m), hi.map(|v| v + m));
+            slots.reset(blocks.0, blocks.1);
             let mut taken = std::mem::take(&mut self.taken);
             let mut target = SinkTarget { slots: &mut slots, taken: &mut taken, sink: &mut *sink };
             self.windows_of_width(w, geo, table, margin, &mut target);
@@ -255,22 +255,26 @@ impl Scatter {
         table: &KernelTable,
         r: i32,
     ) -> ScanDelta {
-        self.bucket(pts, lo, hi);
         let shape = window_shape(geo.ell_cells).filter(|&(_, m)| m <= B as usize);
-        // Delta blocks reach R cells beyond the points' blocks: at most M = ⌈R/B⌉ blocks further.
-        let reach = shape.map_or(r, |(_, m)| r.max(m as i32));
-        let m = (reach + B - 1) / B;
-        self.delta.reset(lo.map(|v| v - m), hi.map(|v| v + m));
         let exact_blocks = shape.is_some();
         match shape {
             Some((w, margin)) => {
+                let blocks = self.bucket_windows(pts, lo, hi);
+                self.delta.reset(blocks.0, blocks.1);
                 let mut delta = std::mem::take(&mut self.delta);
                 let mut spare = std::mem::take(&mut self.spare);
                 let mut target = DeltaTarget { delta: &mut delta, spare: &mut spare };
                 self.windows_of_width(w, geo, table, margin, &mut target);
                 (self.delta, self.spare) = (delta, spare);
             }
-            None => self.stencils(geo, table, r, m),
+            None => {
+                self.bucket(pts, lo, hi, BLOCK_SHIFT);
+                // Delta blocks reach R cells beyond the points' blocks: at most M = ⌈R/B⌉
+                // blocks further.
+                let m = (r + B - 1) / B;
+                self.delta.reset(lo.map(|v| v - m), hi.map(|v| v + m));
+                self.stencils(geo, table, r, m);
+            }
         }
         let blocks = std::mem::take(&mut self.delta.blocks);
         let rows = std::mem::take(&mut self.delta.rows);
@@ -321,8 +325,9 @@ impl Scatter {
             if start == end {
                 continue;
             }
-            let block = self.grid_block_of_slot(s);
-            let origin = block.map(|v| v * B);
+            // The bucket's first cell and first block.
+            let bucket = self.grid_block_of_slot(s);
+            let (origin, block) = (bucket.map(|v| v * SB as i32), bucket.map(|v| v * S as i32));
             let mut rest = &sorted[start..end];
             while !rest.is_empty() {
                 if self.brick.full() {
@@ -363,9 +368,21 @@ impl Scatter {
         [0, 1, 2].map(|i| (i64::from(self.grid.min[i]) + o[i]) as i32)
     }
 
-    /// Counting sort of the points by the block slot of their cell, into `cells_sorted` (so a
-    /// bucket is one contiguous run, from `starts[s]` to `starts[s + 1]`).
-    fn bucket(&mut self, pts: &[CellPoint], lo: [i32; 3], hi: [i32; 3]) {
+    /// Buckets the points of the window path by the `S`³ blocks their cell lies in (`lo`, `hi`:
+    /// the block bounds of their cells), and returns the bounds of the blocks their windows
+    /// reach: those buckets' blocks and one more each side (a window reaches its margin,
+    /// at most 3 cells, beyond its bucket).
+    fn bucket_windows(&mut self, pts: &[CellPoint], lo: [i32; 3], hi: [i32; 3]) -> ([i32; 3], [i32; 3]) {
+        let shift = S.trailing_zeros();
+        let (lo, hi) = (lo.map(|v| v >> shift), hi.map(|v| v >> shift));
+        self.bucket(pts, lo, hi, BLOCK_SHIFT + shift);
+        (lo.map(|v| v * S as i32 - 1), hi.map(|v| v * S as i32 + S as i32))
+    }
+
+    /// Counting sort of the points by the slot of the bucket (`2^shift` cells a side) of their
+    /// cell, into `cells_sorted` (so a bucket is one contiguous run, from `starts[s]` to
+    /// `starts[s + 1]`); `lo`, `hi` are the bucket bounds.
+    fn bucket(&mut self, pts: &[CellPoint], lo: [i32; 3], hi: [i32; 3], shift: u32) {
         self.grid.reset(lo, hi);
         let n_slots = self.grid.slots.len();
         self.starts.clear();
@@ -376,7 +393,7 @@ impl Scatter {
         let grid = &self.grid;
         self.bucket_of.extend(pts.iter().map(|(p, _)| {
             let c = p.map(super::evidence::floor_i32);
-            grid.index(c.map(|v| v >> BLOCK_SHIFT)) as u32
+            grid.index(c.map(|v| v >> shift)) as u32
         }));
         for &s in &self.bucket_of {
             self.starts[s as usize + 1] += 1;
@@ -410,7 +427,7 @@ trait FoldTarget {
 trait FoldBlock {
     /// Adds the hit mass `a` and the free mass `b` to row `row` (`8z + y`) from cell `x` on,
     /// and zeroes both.
-    fn add_row<const N: usize>(&mut self, row: usize, x: usize, a: &mut [i32; N], b: &mut [i32; N]);
+    fn add_row<const N: usize>(&mut self, row: usize, x: usize, a: &mut [u32; N], b: &mut [u32; N]);
 }
 
 /// Folds into the scatter's delta blocks.
@@ -440,7 +457,7 @@ impl FoldTarget for DeltaTarget<'_> {
 
 impl FoldBlock for DeltaRows<'_> {
     #[inline(always)]
-    fn add_row<const N: usize>(&mut self, row: usize, x: usize, a: &mut [i32; N], b: &mut [i32; N]) {
+    fn add_row<const N: usize>(&mut self, row: usize, x: usize, a: &mut [u32; N], b: &mut [u32; N]) {
         let at = row * B as usize + x;
         for (label, (dst, src)) in [(&mut self.block.a, a), (&mut self.block.b, b)].into_iter().enumerate() {
             if src.iter().any(|&v| v != 0) {
@@ -482,7 +499,7 @@ impl<S: BlockSink + ?Sized> FoldTarget for SinkTarget<'_, S> {
 
 impl FoldBlock for &mut BlockEvidence {
     #[inline(always)]
-    fn add_row<const N: usize>(&mut self, row: usize, x: usize, a: &mut [i32; N], b: &mut [i32; N]) {
+    fn add_row<const N: usize>(&mut self, row: usize, x: usize, a: &mut [u32; N], b: &mut [u32; N]) {
         self.fold_row(row * B as usize + x, a, b);
     }
 }
@@ -501,80 +518,90 @@ fn fold_brick(brick: &mut Brick, block: [i32; 3], target: &mut impl FoldTarget) 
     // The margin is 1 to 3 cells for every width the window path compiles (`window_shape`);
     // a margin and edge known at compile time make every row a fixed-length vector operation.
     match brick.margin() {
-        1 => fold_brick_with::<1, 10>(brick, block, target),
-        2 => fold_brick_with::<2, 12>(brick, block, target),
-        3 => fold_brick_with::<3, 14>(brick, block, target),
+        1 => fold_brick_with::<1, { SB + 2 }>(brick, block, target),
+        2 => fold_brick_with::<2, { SB + 4 }>(brick, block, target),
+        3 => fold_brick_with::<3, { SB + 6 }>(brick, block, target),
         m => unreachable!("brick margin {m} outside 1..=3"),
     }
 }
 
-/// Folds a brick of margin `M` and edge `E = 8 + 2M`, by rows of regions: the regions that
-/// share a y and a z range (the three x regions, low margin, block and high margin) are tested
-/// together, one brick row of `E` cells at a time (when only the block's region of them was
-/// touched, just its 8 cells), and then each x region's rows with mass are folded into its
-/// block. Testing a row's three parts in one pass, not region by region, took the fold from
-/// 129 to 123 M instructions over 48 sample scans (callgrind): the margins' rows are two cells
-/// wide, and testing them on their own cost as much as testing the block's.
+/// Folds a brick of margin `M` and edge `E = S·B + 2M` whose first block is `block`, by rows
+/// of regions: the regions that share a y and a z range (along x the low margin, the `S`
+/// blocks and the high margin) are tested together, one brick row of `E` cells at a time
+/// (when no margin of them was touched, just the blocks' cells), and then each x region's rows
+/// with mass are folded into its block. Testing a row's parts in one pass, not region by
+/// region, took the fold from 129 to 123 M instructions over 48 sample scans (callgrind, with
+/// one block per bucket): the margins' rows are two cells wide, and testing them on their own
+/// cost as much as testing the block's.
 fn fold_brick_with<const M: usize, const E: usize>(
     brick: &mut Brick,
     block: [i32; 3],
     target: &mut impl FoldTarget,
 ) {
+    const R: usize = S + 2;
     let b = B as usize;
-    debug_assert_eq!((brick.edge(), E), (b + 2 * M, b + 2 * M));
+    debug_assert_eq!((brick.edge(), E), (SB + 2 * M, SB + 2 * M));
     // Per region along an axis: (first brick cell, first target cell, length).
-    let span = |r: usize| [(0, b - M, M), (M, 0, b), (M + b, 0, M)][r];
+    let span = |r: usize| match r {
+        0 => (0, b - M, M),
+        r if r <= S => (M + (r - 1) * b, 0, b),
+        _ => (M + SB, 0, M),
+    };
     let touched = brick.touched[0] | brick.touched[1];
     let (cells_a, cells_b) = (&mut brick.a[..], &mut brick.b[..]);
-    for rz in 0..3 {
-        for ry in 0..3 {
-            let xs = touched >> (9 * rz + 3 * ry) & 0b111;
+    for rz in 0..R {
+        for ry in 0..R {
+            let xs = touched >> (R * (ry + R * rz)) & ((1 << R) - 1);
             if xs == 0 {
                 continue;
             }
             let (y, z) = (span(ry), span(rz));
             let at = |zi: usize, yi: usize| ((z.0 + zi) * E + y.0 + yi) * E;
             // Rows with mass per x region, bit 8z + y (a region is at most 8 × 8 rows).
-            let mut rows = [0u64; 3];
+            let mut rows = [0u64; R];
             // Every row lies before the last one's end: checked once here, which spares the
             // rows most of their own bounds checks.
             let end = at(z.2 - 1, y.2 - 1) + E;
             let (ca, cb) = (&cells_a[..end], &cells_b[..end]);
+            let margins = 1 | 1 << (R - 1);
             for zi in 0..z.2 {
                 for yi in 0..y.2 {
                     let i = at(zi, yi);
                     let bit = zi * 8 + yi;
-                    if xs == 0b010 {
-                        rows[1] |= u64::from(any_mass::<8>(&ca[i + M..], &cb[i + M..])) << bit;
+                    let any = |cells: &[u32]| u64::from(cells.iter().fold(0, |acc, &v| acc | v) != 0);
+                    if xs & margins == 0 {
+                        let (ra, rb): (&[u32; SB], &[u32; SB]) = (
+                            ca[i + M..i + M + SB].try_into().expect("S·B cells"),
+                            cb[i + M..i + M + SB].try_into().expect("S·B cells"),
+                        );
+                        let or: [u32; SB] = std::array::from_fn(|k| ra[k] | rb[k]);
+                        for (r, cells) in rows[1..=S].iter_mut().zip(or.chunks_exact(b)) {
+                            *r |= any(cells) << bit;
+                        }
                     } else {
-                        let (ra, rb): (&[i32; E], &[i32; E]) = (
+                        let (ra, rb): (&[u32; E], &[u32; E]) = (
                             ca[i..i + E].try_into().expect("E cells"),
                             cb[i..i + E].try_into().expect("E cells"),
                         );
-                        let or: [i32; E] = std::array::from_fn(|k| ra[k] | rb[k]);
-                        let any = |cells: &[i32]| u64::from(cells.iter().fold(0, |acc, &v| acc | v) != 0);
+                        let or: [u32; E] = std::array::from_fn(|k| ra[k] | rb[k]);
                         rows[0] |= any(&or[..M]) << bit;
-                        rows[1] |= any(&or[M..M + 8]) << bit;
-                        rows[2] |= any(&or[M + 8..]) << bit;
+                        for (r, cells) in rows[1..=S].iter_mut().zip(or[M..M + SB].chunks_exact(b)) {
+                            *r |= any(cells) << bit;
+                        }
+                        rows[R - 1] |= any(&or[M + SB..]) << bit;
                     }
                 }
             }
-            let key = |rx: i32| [block[0] + rx - 1, block[1] + ry as i32 - 1, block[2] + rz as i32 - 1];
+            let key = |rx: usize| [0, 1, 2].map(|i| block[i] + [rx, ry, rz][i] as i32 - 1);
             let rows_of = (y, z, at);
             fold_rows::<M>(cells_a, cells_b, rows[0], (0, b - M), rows_of, key(0), target);
-            fold_rows::<8>(cells_a, cells_b, rows[1], (M, 0), rows_of, key(1), target);
-            fold_rows::<M>(cells_a, cells_b, rows[2], (M + b, 0), rows_of, key(2), target);
+            for rx in 1..=S {
+                fold_rows::<8>(cells_a, cells_b, rows[rx], (M + (rx - 1) * b, 0), rows_of, key(rx), target);
+            }
+            fold_rows::<M>(cells_a, cells_b, rows[R - 1], (M + SB, 0), rows_of, key(R - 1), target);
         }
     }
     brick.folded();
-}
-
-/// True when the first `N` cells of `a` or `b` hold mass.
-#[inline(always)]
-fn any_mass<const N: usize>(a: &[i32], b: &[i32]) -> bool {
-    let (ra, rb): (&[i32; N], &[i32; N]) =
-        (a[..N].try_into().expect("N cells"), b[..N].try_into().expect("N cells"));
-    ra.iter().zip(rb).fold(0, |acc, (&p, &q)| acc | p | q) != 0
 }
 
 /// Folds the brick rows in `rows` (bit 8z + y of the region's rows `y`, `z`, which start at
@@ -583,8 +610,8 @@ fn any_mass<const N: usize>(a: &[i32], b: &[i32]) -> bool {
 /// some row has mass.
 #[inline(always)]
 fn fold_rows<const N: usize>(
-    a: &mut [i32],
-    b: &mut [i32],
+    a: &mut [u32],
+    b: &mut [u32],
     mut rows: u64,
     x: (usize, usize),
     (y, z, at): ((usize, usize, usize), (usize, usize, usize), impl Fn(usize, usize) -> usize),
@@ -600,8 +627,8 @@ fn fold_rows<const N: usize>(
         rows &= rows - 1;
         let (zi, yi) = (r >> 3, r & 7);
         let i = at(zi, yi) + x.0;
-        let ra: &mut [i32; N] = (&mut a[i..i + N]).try_into().expect("N cells");
-        let rb: &mut [i32; N] = (&mut b[i..i + N]).try_into().expect("N cells");
+        let ra: &mut [u32; N] = (&mut a[i..i + N]).try_into().expect("N cells");
+        let rb: &mut [u32; N] = (&mut b[i..i + N]).try_into().expect("N cells");
         dst.add_row((z.1 + zi) * B as usize + y.1 + yi, x.1, ra, rb);
     }
 }

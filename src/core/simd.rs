@@ -38,7 +38,7 @@ pub fn add_window_w4(
     axis: &[[f64; 4]; 3],
     scale: f64,
     table: &KernelTable,
-    cells: &mut [i32],
+    cells: &mut [u32],
     at: usize,
     e: usize,
 ) -> bool {
@@ -180,7 +180,7 @@ mod x86 {
         axis: &[[f64; 4]; 3],
         scale: f64,
         table: &KernelTable,
-        cells: &mut [i32],
+        cells: &mut [u32],
         at: usize,
         e: usize,
     ) {
@@ -239,13 +239,13 @@ mod tests {
             }
             // Added into a brick of edge 6 at a random corner, on top of what is there.
             let (e, at) = (6, rng.random_range(0..2) * 37 + 1);
-            let mut brick: Vec<i32> = (0..6 * 6 * 6).map(|_| rng.random_range(0..1000)).collect();
+            let mut brick: Vec<u32> = (0..6 * 6 * 6).map(|_| rng.random_range(0..1000)).collect();
             let before = brick.clone();
             if add_window_w4(&axis, scale, &table, &mut brick, at, e) {
                 for (i, v) in slow.iter().enumerate() {
                     let (z, y, x) = (i / 16, i / 4 % 4, i % 4);
                     let c = at + (z * e + y) * e + x;
-                    assert_eq!(brick[c], before[c] + v, "f = {f:?}, lane {i}");
+                    assert_eq!(brick[c], before[c] + *v as u32, "f = {f:?}, lane {i}");
                     brick[c] = before[c];
                 }
                 assert_eq!(brick, before, "only the window's cells change");

@@ -18,15 +18,15 @@
 //! float-to-int casts of `Brick::place` (saturating, NaN-checked) cost as much as the old
 //! window's lookups.
 //!
-//! Points arrive bucketed by the block of their cell (see [`super::scatter`]). A bucket's
-//! windows all fall inside a brick of `(B + 2M)³` cells — its block plus a margin of `M`
-//! cells — so a window is `W²` contiguous rows of `W` cells in the brick, added without any
-//! block lookup. When the bucket is done, the brick is folded into the (up to 27) delta blocks
-//! it overlaps, only the regions some window touched, and zeroed on the way.
+//! Points arrive bucketed by the `S`³ blocks their cell lies in (see [`super::scatter`]). A
+//! bucket's windows all fall inside a brick of `(S·B + 2M)³` cells — its blocks plus a margin
+//! of `M` cells — so a window is `W²` contiguous rows of `W` cells in the brick, added without
+//! any block lookup. When the bucket is done, the brick is folded into the (up to (S + 2)³)
+//! blocks it overlaps, only the regions some window touched, and zeroed on the way.
 //!
-//! The brick holds `i32` (half the memory traffic of the blocks' `i64`, and 8 lanes per AVX2
-//! add): one pair adds at most `2^F` ([`FIXED_SHIFT`]), so up to [`BRICK_POINTS`] points fit
-//! without overflow; a bucket with more is folded every [`BRICK_POINTS`] points.
+//! The brick holds `u32` (half the memory traffic of the blocks' `i64`): one pair adds at most
+//! `2^F` ([`FIXED_SHIFT`]) and masses are never negative, so up to [`BRICK_POINTS`] points of a
+//! label fit without overflow; a bucket with more is folded every [`BRICK_POINTS`] points.
 //!
 //! Bits equal the reference: every lane computes `(o − f)²` per axis and sums z, y, then x,
 //! exactly as [`pair_coord`](super::evidence::pair_coord).
@@ -38,21 +38,31 @@ use super::scatter::CellPoint;
 
 const B: usize = BLOCK_EDGE as usize;
 
-/// Points a brick takes between folds: each adds at most `2^F` to a cell, and
-/// `BRICK_POINTS · 2^F ≤ i32::MAX`.
-pub const BRICK_POINTS: u32 = (i32::MAX as u32) >> FIXED_SHIFT;
+/// Blocks per bucket edge: a bucket, and the brick its windows go to, span `S`³ blocks. Two
+/// blocks a side (a 20³ brick for la3dm's geometry, 62 KiB for both labels) replaced one
+/// (2026-12-04): a block's margins are folded into its neighbours, and inside a bucket of 2³
+/// blocks there are none.
+pub const S: usize = 2;
+/// Cells per bucket edge.
+pub const SB: usize = S * B;
+/// Regions per brick axis: the low margin, the `S` blocks, the high margin.
+const R: usize = S + 2;
 
-/// `SPREAD[axis][mask]`: the 27-bit region mask (bit `9z + 3y + x`) of every region whose
-/// coordinate along `axis` is in the 3-bit `mask`.
-const SPREAD: [[u32; 8]; 3] = {
-    let mut t = [[0u32; 8]; 3];
+/// Points of one label a brick takes between folds: each adds at most `2^F` to a cell, and
+/// brick cells are `u32` (masses are never negative), so `BRICK_POINTS · 2^F < 2^32`.
+pub const BRICK_POINTS: u32 = u32::MAX >> FIXED_SHIFT;
+
+/// `SPREAD[axis][mask]`: the region mask (bit `x + R·(y + R·z)` for region (x, y, z)) of every
+/// region whose coordinate along `axis` is in the `R`-bit `mask`.
+const SPREAD: [[u64; 1 << R]; 3] = {
+    let mut t = [[0u64; 1 << R]; 3];
     let mut axis = 0;
     while axis < 3 {
         let mut mask = 0;
-        while mask < 8 {
+        while mask < 1 << R {
             let mut bit = 0;
-            while bit < 27 {
-                let r = [bit % 3, bit / 3 % 3, bit / 9];
+            while bit < R * R * R {
+                let r = [bit % R, bit / R % R, bit / (R * R)];
                 if mask >> r[axis] & 1 != 0 {
                     t[axis][mask] |= 1 << bit;
                 }
@@ -82,39 +92,39 @@ pub fn window_shape(ell_cells: f64) -> Option<(usize, usize)> {
 /// Accumulates one bucket's windows (occupied mass `a`, free mass `b`) in a dense brick.
 #[derive(Debug, Default)]
 pub struct Brick {
-    /// Brick edge `B + 2M` and margin `M`.
+    /// Brick edge `SB + 2M` and margin `M`.
     edge: usize,
     margin: usize,
-    pub a: Vec<i32>,
-    pub b: Vec<i32>,
-    /// Points added since the last fold (at most [`BRICK_POINTS`]).
-    points: u32,
-    /// Per label (0 = a, 1 = b): bit `9z + 3y + x` set when a window touched region (x, y, z),
-    /// region 0 = low margin, 1 = the bucket's block, 2 = high margin.
-    pub touched: [u32; 2],
+    pub a: Vec<u32>,
+    pub b: Vec<u32>,
+    /// Points added since the last fold, per label (at most [`BRICK_POINTS`] each).
+    points: [u32; 2],
+    /// Per label (0 = a, 1 = b): bit `x + R·(y + R·z)` set when a window touched region
+    /// (x, y, z); along an axis region 0 is the low margin, 1 to `S` the bucket's blocks and
+    /// `S + 1` the high margin.
+    pub touched: [u64; 2],
 }
 
 impl Brick {
     pub fn reset(&mut self, margin: usize) {
-        let edge = B + 2 * margin;
+        let edge = SB + 2 * margin;
         if self.edge != edge {
             *self = Self { edge, margin, ..Self::default() };
             self.a = vec![0; edge * edge * edge];
             self.b = vec![0; edge * edge * edge];
         }
-        self.touched = [0; 2];
-        self.points = 0;
+        self.folded();
     }
 
     /// True when the brick must be folded before it takes another point.
     pub fn full(&self) -> bool {
-        self.points >= BRICK_POINTS
+        self.room() == 0
     }
 
     /// Marks the brick folded (its cells are zero again).
     pub fn folded(&mut self) {
         self.touched = [0; 2];
-        self.points = 0;
+        self.points = [0; 2];
     }
 
     pub fn edge(&self) -> usize {
@@ -125,42 +135,42 @@ impl Brick {
         self.margin
     }
 
-    /// The region (0, 1, 2) of brick coordinate `i` along an axis.
+    /// The region (0 to `S + 1`) of brick coordinate `i` along an axis.
     #[inline(always)]
     fn region(&self, i: usize) -> u32 {
-        u32::from(i >= self.margin) + u32::from(i >= self.margin + B)
+        if i < self.margin { 0 } else { ((i - self.margin) / B + 1).min(S + 1) as u32 }
     }
 
-    /// Points the brick takes before it must be folded.
+    /// Points (of either label) the brick takes before it must be folded.
     pub fn room(&self) -> usize {
-        (BRICK_POINTS - self.points) as usize
+        (BRICK_POINTS - self.points[0].max(self.points[1])) as usize
     }
 
     /// Where the window of the point `p` (cell units) lies: its offset `f` from its cell's
     /// centre, the first window offset per axis, the brick index of the window's first cell
-    /// and the regions it touches. `block_origin` is the first cell of the bucket's block (the
-    /// point's cell must lie in that block).
+    /// and the regions it touches. `bucket_origin` is the first cell of the bucket (the point's
+    /// cell must lie in the bucket).
     #[inline(always)]
     pub(crate) fn place<const W: usize>(
         &self,
         p: [f64; 3],
-        block_origin: [i32; 3],
+        bucket_origin: [i32; 3],
         ell_cells: f64,
     ) -> Placement {
         let (c, f) = split_point(p);
         let start = f.map(|v| window_start(v, ell_cells));
-        let (at, regions) = self.locate::<W>(std::array::from_fn(|a| c[a] - block_origin[a] + start[a]));
+        let (at, regions) = self.locate::<W>(std::array::from_fn(|a| c[a] - bucket_origin[a] + start[a]));
         Placement { f, start, at, regions }
     }
 
     /// The brick index of a window's first cell and the regions the window touches, from that
-    /// cell's offset (per axis) from the first cell of the bucket's block.
+    /// cell's offset (per axis) from the first cell of the bucket.
     #[inline(always)]
-    fn locate<const W: usize>(&self, first: [i32; 3]) -> (usize, u32) {
+    fn locate<const W: usize>(&self, first: [i32; 3]) -> (usize, u64) {
         let mut base = [0usize; 3];
         let mut regions = [0u32; 3];
         for a in 0..3 {
-            // In the brick: the block's cells start after the margin.
+            // In the brick: the bucket's cells start after the margin.
             let b = first[a] as isize + self.margin as isize;
             debug_assert!(b >= 0 && b as usize + W <= self.edge, "window outside the brick");
             base[a] = b as usize;
@@ -172,29 +182,30 @@ impl Brick {
         ((base[2] * e + base[1]) * e + base[0], regions)
     }
 
-    /// The regions (along one axis, as a 3-bit mask) of a window whose first cell is at brick
-    /// coordinate `base`.
+    /// The regions (along one axis, as an `R`-bit mask) of a window whose first cell is at
+    /// brick coordinate `base` (a window spans at most two: W ≤ 6 < B).
     #[inline(always)]
     fn axis_regions<const W: usize>(&self, base: usize) -> u32 {
         let (r0, r1) = (self.region(base), self.region(base + W - 1));
-        (0b111 >> (2 - (r1 - r0))) << r0
+        (0b11 >> (1 - (r1 - r0))) << r0
     }
 
     /// Records one added window of label `hit` that touched `regions`.
     #[inline(always)]
-    pub(crate) fn note(&mut self, hit: bool, regions: u32) {
-        debug_assert!(self.points < BRICK_POINTS, "brick not folded in time");
-        self.points += 1;
-        self.touched[usize::from(!hit)] |= regions;
+    pub(crate) fn note(&mut self, hit: bool, regions: u64) {
+        let label = usize::from(!hit);
+        debug_assert!(self.points[label] < BRICK_POINTS, "brick not folded in time");
+        self.points[label] += 1;
+        self.touched[label] |= regions;
     }
 
-    /// Adds the windows of `pts` (at most [`Self::room`] of them), all in the block starting at
-    /// cell `block_origin`; with `snapped`, the points sit on its sub-cell centres and their
+    /// Adds the windows of `pts` (at most [`Self::room`] of them), all in the bucket starting at
+    /// cell `bucket_origin`; with `snapped`, the points sit on its sub-cell centres and their
     /// windows are read from it instead of computed.
     pub fn add_points<const W: usize, const W3: usize>(
         &mut self,
         pts: &[CellPoint],
-        block_origin: [i32; 3],
+        bucket_origin: [i32; 3],
         geo: &PairGeometry,
         table: &KernelTable,
         snapped: Option<&SnappedWindows>,
@@ -202,12 +213,12 @@ impl Brick {
         assert!(pts.len() <= self.room(), "brick not folded in time");
         // The margin of width W is ⌈W/2⌉ (see `window_shape`): a brick edge known at compile
         // time makes the window's row offsets constants, checked once per window, not per row.
-        let e = B + 2 * W.div_ceil(2);
+        let e = SB + 2 * W.div_ceil(2);
         assert_eq!(e, self.edge, "a brick of width {W}'s edge");
         match snapped {
             Some(windows) => {
                 for &(p, hit) in pts {
-                    debug_assert_eq!(split_point(p).0.map(|c| c & !(B as i32 - 1)), block_origin);
+                    debug_assert_eq!(split_point(p).0.map(|c| c & !(SB as i32 - 1)), bucket_origin);
                     debug_assert_eq!(windows.brick_edge, e, "windows placed for another brick");
                     let (at, regions, window) = windows.place(p);
                     let cells = if hit { &mut self.a } else { &mut self.b };
@@ -217,7 +228,7 @@ impl Brick {
             }
             None => {
                 for &(p, hit) in pts {
-                    let pl = self.place::<W>(p, block_origin, geo.ell_cells);
+                    let pl = self.place::<W>(p, bucket_origin, geo.ell_cells);
                     let cells = if hit { &mut self.a } else { &mut self.b };
                     add_window::<W, W3>(&window_axes::<W>(pl.start, pl.f), geo.scale, table, cells, pl.at, e);
                     self.note(hit, pl.regions);
@@ -263,11 +274,11 @@ pub struct SnappedWindows {
     shift: u32,
     /// The edge of the bricks the windows are placed in (see [`Brick`]).
     brick_edge: usize,
-    /// Per cell `l` of a block and sub-cell `k` along an axis, at `l·n + k` (the low bits of a
+    /// Per cell `l` of a bucket and sub-cell `k` along an axis, at `l·n + k` (the low bits of a
     /// point's sub-cell index), per axis: the brick index step of the window's first cell
     /// (its brick coordinate times the axis' stride) and the [`SPREAD`] of the regions the
     /// window touches along the axis.
-    places: Vec<[(u32, u32); 3]>,
+    places: Vec<[(u32, u64); 3]>,
     /// `n³` windows of W³ values; window `kx + n·(ky + n·kz)` for sub-cell `k` per axis.
     values: Vec<i32>,
 }
@@ -303,14 +314,14 @@ impl SnappedWindows {
             }
         }
         let (_, margin) = window_shape(geo.ell_cells).expect("a window of width W");
-        let e = B + 2 * margin;
+        let e = SB + 2 * margin;
         let mut probe = Brick::default();
         probe.reset(margin);
-        self.places = (0..B * n)
+        self.places = (0..SB * n)
             .map(|i| {
                 let (l, k) = (i / n, i % n);
                 // The brick coordinate of the window's first cell, for a point in cell l of the
-                // bucket's block (the block's cells start after the margin).
+                // bucket (the bucket's cells start after the margin).
                 let first = (l as i32 + window_start(offset(k), geo.ell_cells) + margin as i32) as usize;
                 let regions = probe.axis_regions::<W>(first) as usize;
                 std::array::from_fn(|a| ((first * e.pow(a as u32)) as u32, SPREAD[a][regions]))
@@ -320,19 +331,19 @@ impl SnappedWindows {
         true
     }
 
-    /// Where the window of a point at a sub-cell centre lies in the brick of its bucket (the
-    /// block of its cell): the brick index of the window's first cell, the regions the window
-    /// touches (bit `9z + 3y + x`) and the window's index here. The sub-cell index per axis,
+    /// Where the window of a point at a sub-cell centre lies in the brick of its bucket: the
+    /// brick index of the window's first cell, the regions the window touches (see
+    /// [`Brick::touched`]) and the window's index here. The sub-cell index per axis,
     /// `floor(p·n)`, is `p·n − ½` exactly, rounded without a saturating cast; its low bits
-    /// are the cell in the block and the sub-cell, whose placement is read from a table.
+    /// are the cell in the bucket and the sub-cell, whose placement is read from a table.
     #[inline(always)]
-    pub(crate) fn place(&self, p: [f64; 3]) -> (usize, u32, usize) {
+    pub(crate) fn place(&self, p: [f64; 3]) -> (usize, u64, usize) {
         let n = f64::from(1u32 << self.shift);
-        let (mut at, mut regions, mut window) = (0usize, u32::MAX, 0usize);
+        let (mut at, mut regions, mut window) = (0usize, u64::MAX, 0usize);
         for a in 0..3 {
             let sub = round_to_i64(p[a] * n - 0.5);
             debug_assert!((sub as f64 + 0.5) / n == p[a], "point not at a sub-cell centre: {p:?}");
-            let (step, spread) = self.places[(sub & (((B as i64) << self.shift) - 1)) as usize][a];
+            let (step, spread) = self.places[(sub & (((SB as i64) << self.shift) - 1)) as usize][a];
             at += step as usize;
             regions &= spread;
             window |= ((sub & ((1 << self.shift) - 1)) as usize) << (self.shift as usize * a);
@@ -362,8 +373,8 @@ pub(crate) struct Placement {
     pub start: [i32; 3],
     /// Brick index of the window's first cell.
     pub at: usize,
-    /// Regions the window touches (bit `9z + 3y + x`).
-    pub regions: u32,
+    /// Regions the window touches (see [`Brick::touched`]).
+    pub regions: u64,
 }
 
 /// Adds one window's W³ pair values to the brick `cells` (edge `e`), whose first cell is `at`.
@@ -372,7 +383,7 @@ fn add_window<const W: usize, const W3: usize>(
     axis: &[[f64; W]; 3],
     scale: f64,
     table: &KernelTable,
-    cells: &mut [i32],
+    cells: &mut [u32],
     at: usize,
     e: usize,
 ) {
@@ -390,7 +401,7 @@ fn add_window<const W: usize, const W3: usize>(
 /// Adds a window's W³ values (z-major, then y, then x) to the brick `cells` (edge `e`), whose
 /// first cell is `at`.
 #[inline(always)]
-fn add_values<const W: usize, const W3: usize>(vals: &[i32; W3], cells: &mut [i32], at: usize, e: usize) {
+fn add_values<const W: usize, const W3: usize>(vals: &[i32; W3], cells: &mut [u32], at: usize, e: usize) {
     let cells = &mut cells[at..at + ((W - 1) * e + W - 1) * e + W];
     for z in 0..W {
         for y in 0..W {
@@ -398,7 +409,8 @@ fn add_values<const W: usize, const W3: usize>(vals: &[i32; W3], cells: &mut [i3
             let row = &mut cells[from..from + W];
             let v = &vals[(z * W + y) * W..(z * W + y + 1) * W];
             for x in 0..W {
-                row[x] += v[x];
+                // Window values are kernel masses, never negative.
+                row[x] += v[x] as u32;
             }
         }
     }
@@ -430,7 +442,7 @@ mod tests {
     use super::*;
     use crate::core::evidence::to_cell_units;
 
-    /// Every sub-cell position in every cell of a block, in blocks of either sign: the table
+    /// Every sub-cell position in every cell of a bucket, in buckets of either sign: the table
     /// placement finds the brick index and regions of [`Brick::place`], and the precomputed
     /// window is the computed one.
     fn snapped_equals_computed<const W: usize, const W3: usize>(ell_m: f64, n: u32) {
@@ -443,12 +455,13 @@ mod tests {
         let mut brick = Brick::default();
         brick.reset(margin);
         let n = n as usize;
-        for block in [[0, 0, 0], [-1, 2, -3]] {
-            let origin = block.map(|b| b * BLOCK_EDGE);
-            for (sub, shift) in (0..n * n * n).flat_map(|sub| (0..B).map(move |s| (sub, s))) {
+        for bucket in [[0, 0, 0], [-1, 2, -3]] {
+            let origin = bucket.map(|b| b * SB as i32);
+            for (sub, shift) in (0..n * n * n).flat_map(|sub| (0..SB).map(move |s| (sub, s))) {
                 let k = [sub % n, sub / n % n, sub / (n * n)];
-                // A point in cell (k + shift + a) mod 8 of the block along axis a, at sub-cell k.
-                let cell = [0, 1, 2].map(|a| origin[a] + ((k[a] + shift + a) % B) as i32);
+                // A point in cell (k + shift + 3a) mod S·B of the bucket along axis a, at
+                // sub-cell k.
+                let cell = [0, 1, 2].map(|a| origin[a] + ((k[a] + shift + 3 * a) % SB) as i32);
                 let metres: [f64; 3] = std::array::from_fn(|a| {
                     (f64::from(cell[a]) + (k[a] as f64 + 0.3) / n as f64) * geo.res_m
                 });
