@@ -12,7 +12,7 @@
 //!
 //! Kernel lengths up to 3 cells (la3dm's defaults are 2) take the lane-wise path of
 //! [`super::window`]: fixed W³ windows per point in a per-bucket brick, a bucket being
-//! [`S`](super::window::S)³ blocks. Longer kernels take the stencil path below, bucketed by
+//! [`S`]³ blocks. Longer kernels take the stencil path below, bucketed by
 //! block.
 //!
 //! On one thread, [`Scatter::add_into`] folds the bricks straight into the blocks of a
