@@ -30,10 +30,14 @@ impl Evidence {
 }
 
 /// Evidence of one map block, a cell's two sums side by side: a reader of one cell touches one
-/// cache line (a cell is 16 bytes and the block starts on a 64-byte line, so a line holds four
-/// whole cells), which is what point and ray queries over maps far larger than the caches wait on.
+/// cache line (a cell is 16 bytes at a multiple of 16, so no cell straddles two 64-byte lines),
+/// which is what point and ray queries over maps far larger than the caches wait on.
+///
+/// Aligned to 16, not 64: a 64-byte alignment made every new block an aligned allocation
+/// (`posix_memalign`, then zeroed by hand), where a 16-byte one is `calloc`, which hands out
+/// memory fresh from the system without writing zeros over it again.
 #[derive(Clone, PartialEq, Eq)]
-#[repr(C, align(64))]
+#[repr(C, align(16))]
 pub struct BlockEvidence {
     cells: [Evidence; BLOCK_CELLS],
 }
