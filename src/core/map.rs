@@ -118,8 +118,8 @@ pub trait BlockSink {
     /// Adds (`sign` ≥ 0) or subtracts (`sign` < 0) a scan's delta.
     fn add_delta(&mut self, delta: &ScanDelta, sign: i64);
 
-    /// Adds a whole block of evidence (another map's) to block `key`; a block the sink lacks
-    /// is taken as it is.
+    /// Adds a whole block of evidence (another map's, so it holds some) to block `key`; a
+    /// block the sink lacks is taken as it is.
     fn add_whole_block(&mut self, key: BlockKey, block: Arc<BlockEvidence>);
 }
 
@@ -153,7 +153,10 @@ impl BlockSink for EvidenceMap {
                 self.changes.note(key);
                 s.block_mut().add_scaled(&block, 1);
             }
-            None => self.insert_shared_block(key, block),
+            // Not `insert_shared_block`: a map's blocks hold evidence, and reading all 8 KiB
+            // of one to test that (a block another core has just written, for the maps of
+            // `integrate_parallel`'s workers) was about a quarter of adding a worker's map in.
+            None => self.put_block(key, block),
         }
     }
 }
