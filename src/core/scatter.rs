@@ -80,6 +80,17 @@
 //!   (three alternations); the hot loops are scalar or 4 lanes wide;
 //! - all folds into one scratch block (wrong results, to time the map's memory): evidence
 //!   0.48–0.54 against 0.60 ms, so misses on the map's blocks are about a sixth of it.
+//!
+//! Later on 2026-12-04 (perf, a calm spell, 0.46–0.51 ms per sample scan after the voxel
+//! table's fix in `training.rs`): folds ~22%, window adds ~18%, the voxel table ~19% and the
+//! rest of the training data ~8%, zeroing new blocks ~8%, bucketing, bounds and cell units
+//! ~11%. Timed with wrong results, to see what a change could win at most:
+//! - every point reading window 0, so the 128 KiB window table always sits in L1: evidence
+//!   0.28–0.30 against 0.30–0.32 ms (five alternations), so a table of 4³ windows mirrored per
+//!   axis (16 KiB, exact: the offsets are symmetric) would not pay for its flipped reads;
+//! - reciprocals multiplied instead of dividing (centroids, cell units): no gain the noise
+//!   resolved. The divisions stay regardless: retracting a scan recomputes its evidence, so
+//!   every version must compute the same bits from the same scan.
 
 use super::evidence::{BlockEvidence, DeltaBlock, PairGeometry, RowMask, ScanDelta, split_point};
 use super::kernel::KernelTable;
