@@ -71,7 +71,7 @@ impl TrainingSet {
 ///
 /// Kept (2026-12-04): home slots from the top bits of the hash (the bits below 42 ignored x,
 /// so a lookup probed 2.3 slots on average and its exit branch was mispredicted every fourth
-/// time), and an insert with one branch, taken on collisions only (see [`Self::insert`]):
+/// time), and an insert with one branch, taken on collisions only (see `insert`):
 /// simulated mispredictions over 48 sample scans 910k → 435k (callgrind `--branch-sim`),
 /// training 0.22–0.27 → 0.16–0.22 ms per sample scan (six alternated runs of `--repeat 20`);
 /// the black-boxed exit test alone 0.186 → 0.158 ms (five alternated runs). The dense drive's
