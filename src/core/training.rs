@@ -90,8 +90,8 @@ pub struct VoxelCentroids {
     /// The keys in first-occurrence order (the occupied slots, for [`Self::clear`]);
     /// `keys[len]` is scratch.
     keys: Vec<u64>,
-    /// Per voxel, the sum of its points and their number; `sums[len]` is always
-    /// [`EMPTY_SUM`], the entry the next new voxel adds its first point to.
+    /// Per voxel, the sum of its points and their number; `sums[len]` is always (once
+    /// allocated) [`EMPTY_SUM`], the entry the next new voxel adds its first point to.
     sums: Vec<([f64; 3], u32)>,
 }
 
@@ -251,8 +251,8 @@ impl VoxelCentroids {
 /// bits below 42, so a scan's voxels clustered and a lookup probed 2.3 slots on average.)
 #[inline(always)]
 fn slot_of(key: u64, mask: usize) -> usize {
-    debug_assert!(mask.count_ones() >= 1 && (mask + 1).is_power_of_two());
-    (key.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> mask.leading_zeros()) as usize
+    debug_assert!(mask.count_ones() >= 1 && mask.wrapping_add(1).is_power_of_two());
+    (key.wrapping_mul(0x9E37_79B9_7F4A_7C15) >> (mask as u64).leading_zeros()) as usize
 }
 
 /// [`voxel_key`] of a point known to lie inside ±2^20 voxels (no range test).
