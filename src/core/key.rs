@@ -37,17 +37,23 @@ impl CellKey {
     /// The cell containing world point `p_m` (metres) at resolution `res_m`, or `None` when the
     /// point is not finite or lies outside the i32 key range.
     pub fn from_point(p_m: [f64; 3], res_m: f64) -> Option<Self> {
+        Self::from_cells(p_m.map(|v| v / res_m))
+    }
+
+    /// The cell containing `q`, a point in units of cells (a world point divided by the
+    /// resolution, as [`Self::from_point`] divides it), or `None` outside the i32 key range.
+    #[inline(always)]
+    pub fn from_cells(q: [f64; 3]) -> Option<Self> {
         // floor(v) is in the i32 range ⇔ MIN ≤ v < MAX + 1 (false for NaN and ±∞). Inside it the
         // floor is the truncation, minus one where that rounded up: no libm `floor` call, which
         // baseline x86-64 (no SSE4.1 `roundsd`) would make per coordinate.
-        let k = |v: f64| {
-            let q = v / res_m;
+        let k = |q: f64| {
             (q >= f64::from(i32::MIN) && q < f64::from(i32::MAX) + 1.0).then(|| {
                 let t = q as i32;
                 if f64::from(t) > q { t - 1 } else { t }
             })
         };
-        Some(Self::new(k(p_m[0])?, k(p_m[1])?, k(p_m[2])?))
+        Some(Self::new(k(q[0])?, k(q[1])?, k(q[2])?))
     }
 
     /// World coordinates (metres) of the cell centre.

@@ -47,7 +47,12 @@ pub struct CellEstimate {
 impl CellEstimate {
     /// Eq. 1, 2 and 9 from the stored sums.
     pub fn from_evidence(e: Evidence, params: &MapParams, th: &Thresholds) -> Self {
-        let (probability, variance) = probability_variance(e, params);
+        Self::from_moments(e, probability_variance(e, params), th)
+    }
+
+    /// The estimate of evidence `e` whose [`probability_variance`] is `(probability, variance)`.
+    #[inline(always)]
+    pub(crate) fn from_moments(e: Evidence, (probability, variance): (f64, f64), th: &Thresholds) -> Self {
         let state = if probability < th.p_free && variance < th.var_max {
             CellState::Free
         } else if probability > th.p_occ && variance < th.var_max {
@@ -75,11 +80,18 @@ impl CellEstimate {
 #[inline]
 pub(crate) fn probability_variance(e: Evidence, params: &MapParams) -> (f64, f64) {
     let (alpha, beta) = alpha_beta(e, params);
+    mean_variance(alpha, beta)
+}
+
+/// The mean and variance of Beta(`alpha`, `beta`).
+#[inline(always)]
+pub(crate) fn mean_variance(alpha: f64, beta: f64) -> (f64, f64) {
     let w = alpha + beta;
     (alpha / w, alpha * beta / (w * w * (w + 1.0)))
 }
 
-fn alpha_beta(e: Evidence, params: &MapParams) -> (f64, f64) {
+#[inline(always)]
+pub(crate) fn alpha_beta(e: Evidence, params: &MapParams) -> (f64, f64) {
     (
         params.prior_a + params.sf2 * (e.a as f64 / FIXED_ONE),
         params.prior_b + params.sf2 * (e.b as f64 / FIXED_ONE),

@@ -4,7 +4,7 @@
 
 use super::evidence::BlockEvidence;
 use super::key::{BLOCK_CELLS, BlockKey, CellKey};
-use super::map::{CellEstimate, CellState, Evidence, EvidenceMap};
+use super::map::{CellEstimate, CellState, Evidence, EvidenceMap, alpha_beta, mean_variance};
 use super::params::Thresholds;
 
 /// One answer of a point query.
@@ -38,6 +38,12 @@ const POINT_BATCH: usize = 32;
 /// the estimates (measured: faster than prefetching inside the lookup loop). A cell without
 /// evidence answers the prior estimate computed once (the same bits as
 /// [`CellEstimate::from_evidence`] of zero evidence).
+///
+/// Keys and estimates are computed stage by stage over the round, so their five divisions per
+/// point run as packed pairs: 18.4 → 19.1 M points/s (median of sixteen alternated runs in one
+/// process, 2026-12-04, Xeon VM). Tried and not kept: two rounds in flight (round k+1's cells
+/// prefetched before round k is answered): no faster, the misses already fill the core's
+/// miss buffers.
 pub fn for_each_point(
     map: &EvidenceMap,
     points_world: &[[f64; 3]],
@@ -45,32 +51,54 @@ pub fn for_each_point(
     mut f: impl FnMut(Option<PointAnswer>),
 ) {
     let res = map.params().resolution_m;
-    let prior = CellEstimate::from_evidence(Evidence::default(), map.params(), th);
+    let params = map.params();
+    let prior = CellEstimate::from_evidence(Evidence::default(), params, th);
     let mut cells = [None::<CellKey>; POINT_BATCH];
     let mut block_keys = [None::<BlockKey>; POINT_BATCH];
     let mut blocks: [Option<&BlockEvidence>; POINT_BATCH] = [None; POINT_BATCH];
+    let mut evidence = [Evidence::default(); POINT_BATCH];
     for chunk in points_world.chunks(POINT_BATCH) {
-        for (c, p) in cells.iter_mut().zip(chunk) {
-            *c = CellKey::from_point(*p, res);
+        let n = chunk.len();
+        // Each stage is a loop over the round, so the divisions (three per key, two per
+        // estimate) go two at a time (packed); the same IEEE operations per point, so the same
+        // bits as `CellKey::from_point` and `CellEstimate::from_evidence`.
+        let mut q = [[0.0; 3]; POINT_BATCH];
+        for (q, p) in q.iter_mut().zip(chunk) {
+            *q = p.map(|v| v / res);
         }
-        for (k, c) in block_keys.iter_mut().zip(&cells[..chunk.len()]) {
+        for (c, q) in cells.iter_mut().zip(&q[..n]) {
+            *c = CellKey::from_cells(*q);
+        }
+        for (k, c) in block_keys.iter_mut().zip(&cells[..n]) {
             *k = c.map(|c| c.block());
         }
-        map.blocks_of(&block_keys[..chunk.len()], &mut blocks[..chunk.len()]);
-        for (b, c) in blocks.iter().zip(&cells[..chunk.len()]) {
+        map.blocks_of(&block_keys[..n], &mut blocks[..n]);
+        for (b, c) in blocks.iter().zip(&cells[..n]) {
             if let (Some(b), Some(c)) = (b, c) {
                 super::simd::prefetch(b.cell(c.index_in_block()));
             }
         }
-        for (cell, block) in cells.iter().zip(&blocks).take(chunk.len()) {
-            f(cell.map(|cell| {
-                let e = match block {
-                    Some(b) => b.get(cell.index_in_block()),
-                    None => Evidence::default(),
-                };
-                let estimate =
-                    if e.is_empty() { prior } else { CellEstimate::from_evidence(e, map.params(), th) };
-                PointAnswer { cell, estimate }
+        let (mut alpha, mut beta) = ([0.0; POINT_BATCH], [0.0; POINT_BATCH]);
+        for i in 0..n {
+            evidence[i] = match (blocks[i], cells[i]) {
+                (Some(b), Some(c)) => b.get(c.index_in_block()),
+                _ => Evidence::default(),
+            };
+            (alpha[i], beta[i]) = alpha_beta(evidence[i], params);
+        }
+        let (mut mean, mut var) = ([0.0; POINT_BATCH], [0.0; POINT_BATCH]);
+        for i in 0..POINT_BATCH {
+            (mean[i], var[i]) = mean_variance(alpha[i], beta[i]);
+        }
+        for i in 0..n {
+            let e = evidence[i];
+            f(cells[i].map(|cell| PointAnswer {
+                cell,
+                estimate: if e.is_empty() {
+                    prior
+                } else {
+                    CellEstimate::from_moments(e, (mean[i], var[i]), th)
+                },
             }));
         }
     }
@@ -217,6 +245,31 @@ pub(crate) mod tests {
             integ.integrate(&mut map, &s.points_world, s.origin, 1);
         }
         map
+    }
+
+    #[test]
+    fn batched_points_equal_one_point_at_a_time() {
+        // 2,000 points (62 full rounds and a partial one) over and around the room: cells with
+        // and without evidence, blocks that do not exist, points outside the key range.
+        let map = room_map();
+        let th = Thresholds::default();
+        let mut pts: Vec<[f64; 3]> = (0..1997)
+            .map(|i| {
+                let t = i as f64;
+                [(t * 0.0137) % 12.0 - 1.0, (t * 0.0291) % 9.0 - 1.0, (t * 0.0071) % 3.5 - 0.5]
+            })
+            .collect();
+        pts.extend([[f64::NAN, 0.0, 0.0], [1e12, 0.0, 0.0], [0.0, -1e12, 0.0]]);
+        let ans = query_points(&map, &pts, &th);
+        assert_eq!(ans.len(), pts.len());
+        let mut with_evidence = 0;
+        for (p, a) in pts.iter().zip(&ans) {
+            let expected = CellKey::from_point(*p, 0.1)
+                .map(|cell| PointAnswer { cell, estimate: map.estimate(cell, &th) });
+            assert_eq!(*a, expected, "point {p:?}");
+            with_evidence += usize::from(a.is_some_and(|a| !a.estimate.evidence.is_empty()));
+        }
+        assert!(with_evidence > 100 && with_evidence < 1900, "{with_evidence} points with evidence");
     }
 
     #[test]
