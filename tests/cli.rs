@@ -254,3 +254,29 @@ fn demo_builds_and_evaluates() {
     let map = bgkmap::store::load_map(&dir.join("demo/demo.bgkmap")).unwrap();
     assert!(map.cells_with_evidence() > 1000, "{} cells with evidence", map.cells_with_evidence());
 }
+
+/// `bench durable` end to end at a small size: three ingest runs against the real server
+/// (acknowledged and integrated rates), then restart and merge of two generated maps.
+#[cfg(feature = "server")]
+#[test]
+fn bench_durable_json() {
+    let tmp = tempfile::tempdir().unwrap();
+    let dir = tmp.path();
+    let d = dir.to_str().unwrap();
+    let args =
+        ["bench", "durable", "--scans", "40", "--points", "400", "--blocks", "300", "--journal-scans", "20"];
+    let json = run_ok_text(dir, args.iter().copied().chain(["--dir", d, "--json"]));
+    let v: serde_json::Value = serde_json::from_str(json.trim()).unwrap_or_else(|e| panic!("{e}: {json}"));
+    for run in ["unary", "stream", "four_streams"] {
+        for rate in ["acked_per_s", "applied_per_s"] {
+            let x = v["ingest"][run][rate].as_f64().unwrap_or(f64::NAN);
+            assert!(x.is_finite() && x > 0.0, "{run}.{rate} = {x} in {json}");
+        }
+    }
+    assert!(v["restart"]["open_s"].as_f64().is_some_and(|s| s > 0.0), "{json}");
+    let merged = v["merge"]["blocks"].as_u64().unwrap_or(0);
+    assert!((300..=600).contains(&merged), "merged blocks {merged} in {json}");
+    // The bench removes its data directory.
+    let left: Vec<_> = std::fs::read_dir(dir).unwrap().collect();
+    assert!(left.is_empty(), "left behind: {left:?}");
+}

@@ -17,6 +17,7 @@ pub mod calls;
 pub mod codec;
 pub mod grpc;
 mod grpc_ops;
+pub use grpc_ops::STREAM_WINDOW;
 pub mod http;
 mod http_ops;
 pub mod status;

@@ -49,6 +49,9 @@ pub struct DurableBenchArgs {
 
 type Client = pb::map_service_client::MapServiceClient<tonic::transport::Channel>;
 
+/// Robots of the fleet run, one `InsertScans` stream each into one map.
+const FLEET_STREAMS: usize = 4;
+
 fn request(map: &str, source: &str, seq: u64, s: &RawScan) -> pb::InsertScanRequest {
     let scan = pb::Scan::world(source, seq, s.origin_world(), &s.points);
     pb::InsertScanRequest { map: map.into(), scan: Some(scan), wait_applied: false }
@@ -96,7 +99,7 @@ async fn ingest(addr: SocketAddr, scans: &[RawScan]) -> Result<Value> {
     new_map(&mut c, "fleet").await?;
     let t0 = Instant::now();
     let mut tasks = Vec::new();
-    for r in 0..4 {
+    for r in 0..FLEET_STREAMS {
         let reqs: Vec<_> = scans
             .iter()
             .enumerate()
@@ -109,8 +112,9 @@ async fn ingest(addr: SocketAddr, scans: &[RawScan]) -> Result<Value> {
         t.await.context("ingest task")??;
     }
     let fleet = (
-        4.0 * n as f64 / t0.elapsed().as_secs_f64(),
-        4.0 * n as f64 / until_applied(&mut c, "fleet", 4 * n, t0).await?,
+        (FLEET_STREAMS as u64 * n) as f64 / t0.elapsed().as_secs_f64(),
+        (FLEET_STREAMS as u64 * n) as f64
+            / until_applied(&mut c, "fleet", FLEET_STREAMS as u64 * n, t0).await?,
     );
     Ok(json!({"unary": {"acked_per_s": unary.0, "applied_per_s": unary.1},
               "stream": {"acked_per_s": stream.0, "applied_per_s": stream.1},
@@ -131,6 +135,10 @@ pub fn run(a: DurableBenchArgs) -> Result<()> {
         // Room for every scan of a run, so acknowledgements measure the journal, not the
         // integration backlog (reported separately as the integrated rate).
         max_unapplied_scans: 8 * a.scans,
+        // And room in the journal's queue for every scan the streams keep in flight: with the
+        // default of 64, four streams of 32 were refused as busy whenever fsync fell behind
+        // (2026-12-04, a VM whose disk was slower than the writer).
+        queue_capacity: FLEET_STREAMS * crate::api::STREAM_WINDOW,
         threads_per_scan: a.threads.max(1),
         ..Default::default()
     };
