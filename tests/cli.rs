@@ -280,3 +280,29 @@ fn bench_durable_json() {
     let left: Vec<_> = std::fs::read_dir(dir).unwrap().collect();
     assert!(left.is_empty(), "left behind: {left:?}");
 }
+
+/// `bench query` end to end at a small size: in-process, then the real server over gRPC and
+/// HTTP, then single-point latency while scans stream in.
+#[cfg(feature = "server")]
+#[test]
+fn bench_query_json() {
+    let tmp = tempfile::tempdir().unwrap();
+    let args =
+        ["bench", "query", "--scans", "1", "--batch", "2000", "--latency-samples", "50", "--rays", "100"];
+    let json = run_ok_text(tmp.path(), args.iter().copied().chain(["--json"]));
+    let v: serde_json::Value = serde_json::from_str(json.trim()).unwrap_or_else(|e| panic!("{e}: {json}"));
+    assert!(v["blocks"].as_u64().is_some_and(|b| b > 100), "{json}");
+    for t in ["in_process", "grpc", "http"] {
+        for key in ["points_per_s", "single_p99_us", "box_1m_ms_median", "rays_8m_per_s", "rays_30m_per_s"] {
+            let x = v[t][key].as_f64().unwrap_or(f64::NAN);
+            assert!(x.is_finite() && x > 0.0, "{t}.{key} = {x} in {json}");
+        }
+        assert_eq!(v[t]["batch"].as_u64(), Some(2000), "{json}");
+    }
+    for key in
+        ["single_p99_us_under_ingest", "single_p99_us_under_room_ingest", "room_background_scans_per_s"]
+    {
+        let x = v["grpc"][key].as_f64().unwrap_or(f64::NAN);
+        assert!(x.is_finite() && x > 0.0, "grpc.{key} = {x} in {json}");
+    }
+}

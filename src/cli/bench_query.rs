@@ -138,7 +138,6 @@ pub fn run_bench(a: &QueryBenchArgs) -> Result<Value> {
     let poses: Vec<[f64; 3]> = sim.iter().map(|s| s.origin).collect();
     let w = Workload::new(&map, &poses, a.batch, a.latency_samples, a.rays);
     let dir = TempDir::new()?;
-    crate::store::save_map(&dir.0.join(format!("{MAP}.bgkmap")), &map)?;
     let mut v = json!({"bench": "query", "scans": sim.len(), "blocks": map.block_count(),
                        "cells_with_evidence": map.cells_with_evidence(), "map_build_s": build_s,
                        "raw_points": sim.iter().map(|s| s.points_world.len()).sum::<usize>()});
@@ -150,10 +149,13 @@ pub fn run_bench(a: &QueryBenchArgs) -> Result<Value> {
     };
     runtime()?.block_on(async {
         v["in_process"] = measure(&mut InProcess::new(&map), &w).await?;
-        drop(map);
         if a.in_process_only {
             return Ok(());
         }
+        // Written only now, so no file write precedes the in-process figures; the server
+        // loads its own copy, so this one goes.
+        crate::store::save_map(&dir.0.join(format!("{MAP}.bgkmap")), &map)?;
+        drop(map);
         let running = start(&config).await?;
         let r = measure_all(running.grpc_addr, running.http_addr, &w, &sim, &mut v).await;
         running.shutdown().await?;
