@@ -682,3 +682,31 @@ async fn a_full_queue_answers_resource_exhausted_with_retry_after() {
     assert_eq!(info.version, applied);
     assert_eq!(info.sources[0].applied, applied);
 }
+
+/// Several robots streaming into one map whose queue is full of the others' scans: a stream
+/// with none of its own scans in flight waits for room, as one with scans in flight waits for
+/// its oldest; every scan of every stream is applied once.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn streams_wait_for_room_in_a_queue_the_others_fill() {
+    use bgkmap::service::{MapService, ServiceConfig};
+    let dir = tempfile::tempdir().unwrap();
+    let config = ServiceConfig { queue_capacity: 1, ..ServiceConfig::default() };
+    let service = std::sync::Arc::new(MapService::open(dir.path(), config).unwrap());
+    let url = serve_in_process(service.clone()).await;
+    let mut client = connect_url(url).await;
+    client.create_map(pb::CreateMapRequest { map: "room".into(), params: Some(pb_params()) }).await.unwrap();
+    let (_, scans) = simulate(0, 12, &Lidar::default());
+    let streams = (0..4).map(|r| {
+        let mut c = client.clone();
+        let reqs: Vec<_> = (0..12u64)
+            .map(|i| insert_req("room", scan_msg(&format!("robot{r}"), i + 1, &scans[i as usize])))
+            .collect();
+        tokio::spawn(async move { c.insert_scans(tokio_stream::iter(reqs)).await })
+    });
+    for s in streams.collect::<Vec<_>>() {
+        let summary = s.await.unwrap().expect("a stream refused as busy").into_inner();
+        assert_eq!((summary.scans, summary.applied, summary.duplicates), (12, 12, 0));
+    }
+    let info = map_info(&mut client, "room").await;
+    assert_eq!(info.sources.iter().map(|s| s.applied).sum::<u64>(), 48);
+}

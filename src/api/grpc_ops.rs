@@ -14,6 +14,9 @@ use tonic::{Status, Streaming};
 /// Scans of one `InsertScans` stream in flight at once (their journal writes share fsyncs).
 pub const STREAM_WINDOW: usize = 32;
 
+/// Longest wait of a stream with no scan in flight before it offers its next scan again.
+const MAX_BUSY_WAIT: std::time::Duration = std::time::Duration::from_millis(50);
+
 type InFlight = VecDeque<(u64, tokio::sync::oneshot::Receiver<Result<Ack, ServiceError>>)>;
 
 fn at(index: u64, s: Status) -> Status {
@@ -42,7 +45,8 @@ async fn drain(inflight: &mut InFlight, summary: &mut pb::InsertScansResponse) -
 }
 
 /// `InsertScans`: scans are submitted in stream order with up to [`STREAM_WINDOW`] awaiting
-/// their acknowledgement; a full queue waits for the oldest instead of failing. The first
+/// their acknowledgement; a full queue waits for the oldest instead of failing (with none in
+/// flight, for the time the busy refusal names, at most [`MAX_BUSY_WAIT`] at a time). The first
 /// failure ends the stream as `request i: …`: every earlier scan is durable; later ones may be
 /// too (resending them is safe: duplicates are acknowledged, not applied twice).
 pub(super) async fn insert_scans(
@@ -76,6 +80,12 @@ pub(super) async fn insert_scans(
                 }
                 Err(e) if e.code() == tonic::Code::ResourceExhausted && !inflight.is_empty() => {
                     settle(&mut inflight, &mut summary).await?;
+                }
+                // The queue is full of other clients' scans: wait for room as above, by the
+                // refusal's own hint (a stream that failed here broke the "waits" promise
+                // whenever several robots streamed into one map and the journal fell behind).
+                Err(e) if let Some(wait) = super::status::retry_after(&e) => {
+                    tokio::time::sleep(wait.min(MAX_BUSY_WAIT)).await;
                 }
                 Err(e) => {
                     drain(&mut inflight, &mut summary).await?;

@@ -36,6 +36,12 @@ pub fn to_grpc(e: &ServiceError) -> tonic::Status {
     status
 }
 
+/// The wait a busy refusal asks for (its `retry-after-ms`); `None` for any other status.
+pub fn retry_after(s: &tonic::Status) -> Option<std::time::Duration> {
+    let ms = s.metadata().get("retry-after-ms")?.to_str().ok()?.parse().ok()?;
+    Some(std::time::Duration::from_millis(ms))
+}
+
 /// HTTP status code for a service error.
 pub fn http_code(e: &ServiceError) -> u16 {
     match e {
