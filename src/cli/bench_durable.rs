@@ -111,10 +111,10 @@ async fn ingest(addr: SocketAddr, scans: &[RawScan]) -> Result<Value> {
     for t in tasks {
         t.await.context("ingest task")??;
     }
+    let fleet_n = FLEET_STREAMS as u64 * n;
     let fleet = (
-        (FLEET_STREAMS as u64 * n) as f64 / t0.elapsed().as_secs_f64(),
-        (FLEET_STREAMS as u64 * n) as f64
-            / until_applied(&mut c, "fleet", FLEET_STREAMS as u64 * n, t0).await?,
+        fleet_n as f64 / t0.elapsed().as_secs_f64(),
+        fleet_n as f64 / until_applied(&mut c, "fleet", fleet_n, t0).await?,
     );
     Ok(json!({"unary": {"acked_per_s": unary.0, "applied_per_s": unary.1},
               "stream": {"acked_per_s": stream.0, "applied_per_s": stream.1},
@@ -135,9 +135,9 @@ pub fn run(a: DurableBenchArgs) -> Result<()> {
         // Room for every scan of a run, so acknowledgements measure the journal, not the
         // integration backlog (reported separately as the integrated rate).
         max_unapplied_scans: 8 * a.scans,
-        // And room in the journal's queue for every scan the streams keep in flight: with the
-        // default of 64, four streams of 32 were refused as busy whenever fsync fell behind
-        // (2026-12-04, a VM whose disk was slower than the writer).
+        // And room in the journal's queue for every scan the streams keep in flight, so they
+        // never wait for room behind each other (with the default of 64, four streams of 32
+        // did whenever fsync fell behind).
         queue_capacity: FLEET_STREAMS * crate::api::STREAM_WINDOW,
         threads_per_scan: a.threads.max(1),
         ..Default::default()
