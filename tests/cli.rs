@@ -255,6 +255,19 @@ fn demo_builds_and_evaluates() {
     assert!(map.cells_with_evidence() > 1000, "{} cells with evidence", map.cells_with_evidence());
 }
 
+/// A bench command's `--json` output.
+#[cfg(feature = "server")]
+fn parse_json(json: &str) -> serde_json::Value {
+    serde_json::from_str(json.trim()).unwrap_or_else(|e| panic!("{e}: {json}"))
+}
+
+/// The figure at `path` (a JSON pointer) is a finite number above zero.
+#[cfg(feature = "server")]
+fn assert_positive(v: &serde_json::Value, path: &str) {
+    let x = v.pointer(path).and_then(serde_json::Value::as_f64).unwrap_or(f64::NAN);
+    assert!(x.is_finite() && x > 0.0, "{path} = {x} in {v}");
+}
+
 /// `bench durable` end to end at a small size: three ingest runs against the real server
 /// (acknowledged and integrated rates), then restart and merge of two generated maps.
 #[cfg(feature = "server")]
@@ -266,14 +279,13 @@ fn bench_durable_json() {
     let args =
         ["bench", "durable", "--scans", "40", "--points", "400", "--blocks", "300", "--journal-scans", "20"];
     let json = run_ok_text(dir, args.iter().copied().chain(["--dir", d, "--json"]));
-    let v: serde_json::Value = serde_json::from_str(json.trim()).unwrap_or_else(|e| panic!("{e}: {json}"));
+    let v = parse_json(&json);
     for run in ["unary", "stream", "four_streams"] {
         for rate in ["acked_per_s", "applied_per_s"] {
-            let x = v["ingest"][run][rate].as_f64().unwrap_or(f64::NAN);
-            assert!(x.is_finite() && x > 0.0, "{run}.{rate} = {x} in {json}");
+            assert_positive(&v, &format!("/ingest/{run}/{rate}"));
         }
     }
-    assert!(v["restart"]["open_s"].as_f64().is_some_and(|s| s > 0.0), "{json}");
+    assert_positive(&v, "/restart/open_s");
     let merged = v["merge"]["blocks"].as_u64().unwrap_or(0);
     assert!((300..=600).contains(&merged), "merged blocks {merged} in {json}");
     // The bench removes its data directory.
@@ -290,19 +302,17 @@ fn bench_query_json() {
     let args =
         ["bench", "query", "--scans", "1", "--batch", "2000", "--latency-samples", "50", "--rays", "100"];
     let json = run_ok_text(tmp.path(), args.iter().copied().chain(["--json"]));
-    let v: serde_json::Value = serde_json::from_str(json.trim()).unwrap_or_else(|e| panic!("{e}: {json}"));
+    let v = parse_json(&json);
     assert!(v["blocks"].as_u64().is_some_and(|b| b > 100), "{json}");
     for t in ["in_process", "grpc", "http"] {
         for key in ["points_per_s", "single_p99_us", "box_1m_ms_median", "rays_8m_per_s", "rays_30m_per_s"] {
-            let x = v[t][key].as_f64().unwrap_or(f64::NAN);
-            assert!(x.is_finite() && x > 0.0, "{t}.{key} = {x} in {json}");
+            assert_positive(&v, &format!("/{t}/{key}"));
         }
         assert_eq!(v[t]["batch"].as_u64(), Some(2000), "{json}");
     }
     for key in
         ["single_p99_us_under_ingest", "single_p99_us_under_room_ingest", "room_background_scans_per_s"]
     {
-        let x = v["grpc"][key].as_f64().unwrap_or(f64::NAN);
-        assert!(x.is_finite() && x > 0.0, "grpc.{key} = {x} in {json}");
+        assert_positive(&v, &format!("/grpc/{key}"));
     }
 }

@@ -50,8 +50,8 @@ pub fn for_each_point(
     th: &Thresholds,
     mut f: impl FnMut(Option<PointAnswer>),
 ) {
-    let res = map.params().resolution_m;
     let params = map.params();
+    let res = params.resolution_m;
     let prior = CellEstimate::from_evidence(Evidence::default(), params, th);
     let mut cells = [None::<CellKey>; POINT_BATCH];
     let mut block_keys = [None::<BlockKey>; POINT_BATCH];
