@@ -293,8 +293,8 @@ fn bench_durable_json() {
     assert!(left.is_empty(), "left behind: {left:?}");
 }
 
-/// `bench query` end to end at a small size: in-process, then the real server over gRPC and
-/// HTTP, then single-point latency while scans stream in.
+/// `bench query` end to end at a small size: in-process, then the real server over gRPC, HTTP
+/// and zenoh, then single-point latency while scans stream in.
 #[cfg(feature = "server")]
 #[test]
 fn bench_query_json() {
@@ -304,7 +304,7 @@ fn bench_query_json() {
     let json = run_ok_text(tmp.path(), args.iter().copied().chain(["--json"]));
     let v = parse_json(&json);
     assert!(v["blocks"].as_u64().is_some_and(|b| b > 100), "{json}");
-    for t in ["in_process", "grpc", "http"] {
+    for t in ["in_process", "grpc", "http", "zenoh"] {
         for key in ["points_per_s", "single_p99_us", "box_1m_ms_median", "rays_8m_per_s", "rays_30m_per_s"] {
             assert_positive(&v, &format!("/{t}/{key}"));
         }

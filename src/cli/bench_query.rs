@@ -1,14 +1,15 @@
 //! `bgkmap bench query`: query speed on a large map (the outdoor drive of [`super::bench_world`],
 //! well over a million cells with evidence), in-process and through every transport, with the
 //! same seeded workload: batched points, single-point latency, 1 m and 10 m boxes, 8 m and 30 m
-//! rays. Each transport is one [`QueryTransport`]; a new transport (zenoh, issue 5) adds an
-//! implementation and one line in [`measure_all`]. Measured figures only; nothing asserts speed.
+//! rays. Each transport (in-process, gRPC, HTTP, zenoh) is one [`QueryTransport`]. Measured
+//! figures only; nothing asserts speed.
 
 use super::bench::percentile;
-use super::bench_query_net::{Grpc, Http, InProcess, latencies_under_ingest};
+use super::bench_query_net::{Grpc, Http, InProcess, Zenoh, latencies_under_ingest};
 use super::bench_server::{MIN_BUSY, MIN_CALLS, TempDir};
 use super::bench_world::{Workload, build_map, outdoor_params, outdoor_scans};
 use super::serve::{ServerConfig, runtime, start};
+use crate::api::zenoh_transport::ZenohConfig;
 use crate::sim::SimScan;
 use anyhow::{Result, ensure};
 use clap::Args;
@@ -145,6 +146,7 @@ pub fn run_bench(a: &QueryBenchArgs) -> Result<Value> {
         data_dir: dir.0.clone(),
         grpc_listen: SocketAddr::from(([127, 0, 0, 1], 0)),
         http_listen: SocketAddr::from(([127, 0, 0, 1], 0)),
+        zenoh: ZenohConfig { enabled: true, listen: vec!["tcp/127.0.0.1:0".into()], ..Default::default() },
         ..Default::default()
     };
     runtime()?.block_on(async {
@@ -157,7 +159,8 @@ pub fn run_bench(a: &QueryBenchArgs) -> Result<Value> {
         crate::store::save_map(&dir.0.join(format!("{MAP}.bgkmap")), &map)?;
         drop(map);
         let running = start(&config).await?;
-        let r = measure_all(running.grpc_addr, running.http_addr, &w, &sim, &mut v).await;
+        let locator = running.zenoh_locators.first().cloned().unwrap_or_default();
+        let r = measure_all(running.grpc_addr, running.http_addr, &locator, &w, &sim, &mut v).await;
         running.shutdown().await?;
         r
     })?;
@@ -168,13 +171,17 @@ pub fn run_bench(a: &QueryBenchArgs) -> Result<Value> {
 async fn measure_all(
     grpc: SocketAddr,
     http: SocketAddr,
+    zenoh_locator: &str,
     w: &Workload,
     sim: &[SimScan],
     v: &mut Value,
 ) -> Result<()> {
     v["grpc"] = measure(&mut Grpc::connect(grpc, w).await?, w).await?;
     v["http"] = measure(&mut Http::connect(http, w).await?, w).await?;
-    // zenoh (issue 5): v["zenoh"] = measure(&mut Zenoh::connect(…, w).await?, w).await?;
+    let mut zenoh = Zenoh::connect(zenoh_locator, w).await?;
+    let z = measure(&mut zenoh, w).await;
+    zenoh.close().await;
+    v["zenoh"] = z?;
     // The drive's dense scans, then scans a 10 Hz sensor of the room's size sends (a dense scan
     // takes longer than 100 ms to integrate, so the first stream cannot reach 10 scans/s).
     let (_, room) = crate::sim::simulate(1, 24, &crate::sim::Lidar::default());
@@ -201,7 +208,7 @@ fn print_summary(v: &Value) {
         "query bench: map of {} scans of the simulated 64-beam drive, {} blocks, {} cells with evidence",
         v["scans"], v["blocks"], v["cells_with_evidence"]
     );
-    for t in ["in_process", "grpc", "http"].into_iter().filter(|t| !v[*t].is_null()) {
+    for t in ["in_process", "grpc", "http", "zenoh"].into_iter().filter(|t| !v[*t].is_null()) {
         println!(
             "  {t}: points ({} per call) {:.2} M/s; single point p50 {:.0} µs p99 {:.0} µs; boxes 1 m {:.3} ms, \
              10 m {:.2} ms ({:.0} cells); rays ({} per call) 8 m {:.3} M/s, 30 m {:.3} M/s",

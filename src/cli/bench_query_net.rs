@@ -1,4 +1,4 @@
-//! The transports of `bgkmap bench query`: in-process (the reference), gRPC and HTTP JSON, each
+//! The transports of `bgkmap bench query`: in-process (the reference), gRPC, HTTP JSON and zenoh, each
 //! with its requests encoded once up front so a run times the server, not the client's
 //! encoding; and gRPC single-point latency while scans are being ingested.
 
@@ -93,31 +93,43 @@ fn f32_bytes(points: &[[f32; 3]]) -> Vec<u8> {
     points.iter().flat_map(|p| p.iter().flat_map(|v| v.to_le_bytes())).collect()
 }
 
+/// The workload's ray batches as protobuf rays, per length kind.
+fn pb_rays(w: &Workload) -> Vec<Vec<Vec<pb::Ray>>> {
+    w.rays
+        .iter()
+        .map(|(_, batches)| {
+            batches
+                .iter()
+                .map(|b| {
+                    b.iter()
+                        .map(|r| pb::Ray {
+                            origin: r.origin.to_vec(),
+                            direction: r.direction.to_vec(),
+                            max_range: r.max_range_m,
+                        })
+                        .collect()
+                })
+                .collect()
+        })
+        .collect()
+}
+
+fn box_request(w: &Workload, kind: usize, i: usize) -> pb::QueryBoxRequest {
+    let (min, max) = w.boxes[kind].1[i];
+    pb::QueryBoxRequest { map: MAP.into(), min: min.to_vec(), max: max.to_vec(), ..Default::default() }
+}
+
+fn rays_request(rays: Vec<pb::Ray>) -> pb::CastRaysRequest {
+    pb::CastRaysRequest { map: MAP.into(), rays, stop_at: pb::StopAt::Occupied as i32, thresholds: None }
+}
+
 impl Grpc {
     pub(super) async fn connect(addr: SocketAddr, w: &Workload) -> Result<Self> {
-        let rays = w
-            .rays
-            .iter()
-            .map(|(_, batches)| {
-                batches
-                    .iter()
-                    .map(|b| {
-                        b.iter()
-                            .map(|r| pb::Ray {
-                                origin: r.origin.to_vec(),
-                                direction: r.direction.to_vec(),
-                                max_range: r.max_range_m,
-                            })
-                            .collect()
-                    })
-                    .collect()
-            })
-            .collect();
         Ok(Self {
             client: connect(addr).await?,
             batches: w.point_batches.iter().map(|b| f32_bytes(b)).collect(),
             singles: w.singles.iter().map(|p| f32_bytes(std::slice::from_ref(p))).collect(),
-            rays,
+            rays: pb_rays(w),
         })
     }
 }
@@ -138,24 +150,107 @@ impl QueryTransport for Grpc {
     }
 
     async fn boxed(&mut self, w: &Workload, kind: usize, i: usize) -> Result<usize> {
-        let (min, max) = w.boxes[kind].1[i];
-        let req = pb::QueryBoxRequest {
-            map: MAP.into(),
-            min: min.to_vec(),
-            max: max.to_vec(),
-            ..Default::default()
-        };
+        let req = box_request(w, kind, i);
         Ok(self.client.query_box(req).await.context("QueryBox")?.get_ref().probability.len())
     }
 
     async fn rays(&mut self, _: &Workload, kind: usize, i: usize) -> Result<usize> {
-        let req = pb::CastRaysRequest {
-            map: MAP.into(),
-            rays: self.rays[kind][i].clone(),
-            stop_at: pb::StopAt::Occupied as i32,
-            thresholds: None,
-        };
+        let req = rays_request(self.rays[kind][i].clone());
         Ok(self.client.cast_rays(req).await.context("CastRays")?.get_ref().results.len())
+    }
+}
+
+fn zbytes(m: impl prost::Message) -> zenoh::bytes::ZBytes {
+    zenoh::bytes::ZBytes::from(m.encode_to_vec())
+}
+
+/// zenoh queries (`bgkmap/<map>/query/{points,box,rays}`) from a peer of the bench's own, with
+/// the gRPC requests' protobuf payloads, encoded up front.
+pub(super) struct Zenoh {
+    session: zenoh::Session,
+    points: zenoh::query::Querier<'static>,
+    boxes: zenoh::query::Querier<'static>,
+    rays: zenoh::query::Querier<'static>,
+    point_payloads: Vec<zenoh::bytes::ZBytes>,
+    single_payloads: Vec<zenoh::bytes::ZBytes>,
+    box_payloads: Vec<Vec<zenoh::bytes::ZBytes>>,
+    ray_payloads: Vec<Vec<zenoh::bytes::ZBytes>>,
+}
+
+impl Zenoh {
+    /// A peer connected to the server's zenoh `locator`.
+    pub(super) async fn connect(locator: &str, w: &Workload) -> Result<Self> {
+        let session = super::bench_zenoh::peer(locator)?;
+        let querier = async |what: &str| {
+            let key = format!("bgkmap/{MAP}/query/{what}");
+            session
+                .declare_querier(key.clone())
+                .timeout(Duration::from_secs(60))
+                .await
+                .map_err(|e| anyhow::anyhow!("declaring a querier on {key}: {e}"))
+        };
+        let (points, boxes, rays) = (querier("points").await?, querier("box").await?, querier("rays").await?);
+        let single = |p: &[f32; 3]| zbytes(points_request(f32_bytes(std::slice::from_ref(p))));
+        Ok(Self {
+            point_payloads: w.point_batches.iter().map(|b| zbytes(points_request(f32_bytes(b)))).collect(),
+            single_payloads: w.singles.iter().map(single).collect(),
+            box_payloads: (0..w.boxes.len())
+                .map(|k| (0..w.boxes[k].1.len()).map(|i| zbytes(box_request(w, k, i))).collect())
+                .collect(),
+            ray_payloads: pb_rays(w)
+                .into_iter()
+                .map(|kind| kind.into_iter().map(|r| zbytes(rays_request(r))).collect())
+                .collect(),
+            session,
+            points,
+            boxes,
+            rays,
+        })
+    }
+
+    /// One query's decoded answer (a server error is this call's error).
+    async fn ask<M: prost::Message + Default + 'static>(
+        querier: &zenoh::query::Querier<'static>,
+        payload: &zenoh::bytes::ZBytes,
+    ) -> Result<M> {
+        let key = querier.key_expr().to_string();
+        let replies =
+            querier.get().payload(payload.clone()).await.map_err(|e| anyhow::anyhow!("get {key}: {e}"))?;
+        let reply = replies.recv_async().await.map_err(|_| anyhow::anyhow!("no reply on {key}"))?;
+        match reply.result() {
+            Ok(sample) => Ok(crate::api::codec::decode::<M>(&sample.payload().to_bytes())?),
+            Err(e) => anyhow::bail!("{key}: {}", e.payload().try_to_string().unwrap_or_default()),
+        }
+    }
+
+    pub(super) async fn close(self) {
+        let _ = self.session.close().await;
+    }
+}
+
+impl QueryTransport for Zenoh {
+    fn name(&self) -> &'static str {
+        "zenoh"
+    }
+
+    async fn points(&mut self, _: &Workload, i: usize) -> Result<usize> {
+        let a: pb::QueryPointsResponse = Self::ask(&self.points, &self.point_payloads[i]).await?;
+        Ok(a.probability.len())
+    }
+
+    async fn single(&mut self, _: &Workload, i: usize) -> Result<usize> {
+        let a: pb::QueryPointsResponse = Self::ask(&self.points, &self.single_payloads[i]).await?;
+        Ok(a.probability.len())
+    }
+
+    async fn boxed(&mut self, _: &Workload, kind: usize, i: usize) -> Result<usize> {
+        let a: pb::QueryBoxResponse = Self::ask(&self.boxes, &self.box_payloads[kind][i]).await?;
+        Ok(a.probability.len())
+    }
+
+    async fn rays(&mut self, _: &Workload, kind: usize, i: usize) -> Result<usize> {
+        let a: pb::CastRaysResponse = Self::ask(&self.rays, &self.ray_payloads[kind][i]).await?;
+        Ok(a.results.len())
     }
 }
 

@@ -87,7 +87,7 @@ pub fn run_bench(a: &ZenohBenchArgs) -> Result<Value> {
 }
 
 /// A zenoh peer of the benchmark's own, connected to the server.
-fn peer(locator: &str) -> Result<zenoh::Session> {
+pub(super) fn peer(locator: &str) -> Result<zenoh::Session> {
     let mut c = zenoh::Config::default();
     for (key, value) in [
         ("mode", "\"peer\"".to_string()),
