@@ -24,8 +24,8 @@ pub enum BenchCommand {
     /// exact merge of two.
     #[cfg(feature = "server")]
     Durable(super::bench_durable::DurableBenchArgs),
-    /// Queries on a map of over a million cells (a simulated 64-beam drive): in-process, gRPC
-    /// and HTTP — batched points, single-point latency (gRPC also while ingesting), boxes, rays.
+    /// Queries on a map of over a million cells (a simulated 64-beam drive): in-process, gRPC,
+    /// HTTP and zenoh — batched points, single-point latency (gRPC also while ingesting), boxes, rays.
     #[cfg(feature = "server")]
     Query(super::bench_query::QueryBenchArgs),
     /// Ingest and query time as the map grows from 10³ to 10⁶ blocks; memory per cell in RAM
