@@ -23,6 +23,7 @@ mod demo;
 mod durable;
 mod eval_cmd;
 mod export;
+mod heap;
 #[cfg(feature = "server")]
 mod ingest;
 pub mod plot;
@@ -79,6 +80,7 @@ enum Command {
 }
 
 pub fn main() -> ExitCode {
+    heap::keep_freed_memory();
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Build(a) => build::run_build(a),
