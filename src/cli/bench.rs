@@ -1,7 +1,7 @@
 //! `bgkmap bench`: measured figures (never timed tests).
 
 use super::args::{ScanArgs, load_scan};
-use crate::core::{EvidenceMap, Integrator, MapParams, integrate_parallel};
+use crate::core::{EvidenceMap, Integrator, MapParams, Workers, integrate_parallel};
 use crate::io::scan::Scan;
 use crate::sim::{Lidar, simulate};
 use anyhow::Result;
@@ -124,7 +124,7 @@ fn ingest(a: IngestArgs) -> Result<()> {
     params.validate()?;
     let threads = a.threads.max(1);
     let split = a.threads_per_scan.max(1);
-    let mut workers: Vec<Integrator> = (0..threads).map(|_| Integrator::new(params)).collect();
+    let mut workers = Workers::new(params, threads);
     let mut per_scan_ms = Vec::new();
     let mut totals_ms = Vec::new();
     // Where the time goes: per scan, training data and evidence (into the map, or into a

@@ -92,6 +92,10 @@ impl BlockSink for MapEdit<'_> {
             self.blocks.insert(key, block);
         }
     }
+
+    fn take_existing_block(&mut self, key: BlockKey) -> Option<Arc<BlockEvidence>> {
+        self.blocks.remove(&key).or_else(|| self.base.block_arc(key))
+    }
 }
 
 /// `map`'s block `key` (shared until written), or a zero block.

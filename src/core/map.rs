@@ -133,6 +133,10 @@ pub trait BlockSink {
     /// Adds a whole block of evidence (another map's, so it holds some) to block `key`; a
     /// block the sink lacks is taken as it is.
     fn add_whole_block(&mut self, key: BlockKey, block: Arc<BlockEvidence>);
+
+    /// Block `key` taken out (as [`Self::take_block`]) if the sink has one; `None`, changing
+    /// nothing, if it has none.
+    fn take_existing_block(&mut self, key: BlockKey) -> Option<Arc<BlockEvidence>>;
 }
 
 impl BlockSink for EvidenceMap {
@@ -170,6 +174,10 @@ impl BlockSink for EvidenceMap {
             // `integrate_parallel`'s workers) was about a quarter of adding a worker's map in.
             None => self.put_block(key, block),
         }
+    }
+
+    fn take_existing_block(&mut self, key: BlockKey) -> Option<Arc<BlockEvidence>> {
+        self.blocks.get_mut(&key).map(|s| std::mem::replace(&mut s.block, placeholder_block()))
     }
 }
 
@@ -415,9 +423,14 @@ impl EvidenceMap {
     /// Adds every block of this map into `sink` ([`BlockSink::add_whole_block`]: moved in where
     /// `sink` has none): how maps of per-thread work go into the map they were for.
     pub fn add_into<K: BlockSink + ?Sized>(self, sink: &mut K) {
-        for (key, slot) in self.blocks {
-            sink.add_whole_block(key, slot.block);
+        for (key, block) in self.into_blocks() {
+            sink.add_whole_block(key, block);
         }
+    }
+
+    /// The map's blocks, taken apart.
+    pub(crate) fn into_blocks(self) -> impl Iterator<Item = (BlockKey, Arc<BlockEvidence>)> {
+        self.blocks.into_iter().map(|(key, slot)| (key, slot.block))
     }
 
     /// True when both maps hold the same blocks with the same evidence, cell by cell (tests).
@@ -678,66 +691,6 @@ fn slabs_by_block_x(pts: &[CellPoint], n: usize, slabs: &mut Vec<Vec<CellPoint>>
     }
 }
 
-/// Integrates many scans into `sink` on one thread per integrator in `workers`: each worker
-/// takes the next scan not yet taken and `add`s it, the first worker (on the calling thread)
-/// straight into `sink`, every other into a map of its own that goes into `sink` block by block
-/// once all scans are done (so a worker pays one block addition per block its scans touched,
-/// not one delta per scan). Evidence is integer, so any split gives the same bits as adding
-/// the scans one after another. With one worker (or one scan) everything runs on the calling
-/// thread. The first error by scan order is returned; the evidence of other scans may have gone
-/// into `sink` by then, so callers add into an edit they can drop.
-pub fn integrate_parallel<S, K, E>(
-    workers: &mut [Integrator],
-    scans: &[S],
-    sink: &mut K,
-    add: impl Fn(&mut Integrator, &S, &mut dyn BlockSink) -> Result<(), E> + Sync,
-) -> Result<(), E>
-where
-    S: Sync,
-    K: BlockSink,
-    E: Send,
-{
-    let n = workers.len().min(scans.len());
-    let Some((first, others)) = workers.split_first_mut() else { return Ok(()) };
-    if n <= 1 {
-        return scans.iter().try_for_each(|s| add(first, s, sink));
-    }
-    let next = std::sync::atomic::AtomicUsize::new(0);
-    let run = |integ: &mut Integrator, sink: &mut dyn BlockSink| -> Result<(), (usize, E)> {
-        loop {
-            let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-            let Some(s) = scans.get(i) else { return Ok(()) };
-            add(integ, s, sink).map_err(|e| (i, e))?;
-        }
-    };
-    let params = first.params;
-    let (mine, theirs): (_, Vec<_>) = std::thread::scope(|scope| {
-        let handles: Vec<_> = others[..n - 1]
-            .iter_mut()
-            .map(|integ| {
-                let run = &run;
-                scope.spawn(move || {
-                    let mut own = EvidenceMap::new(params);
-                    let done = run(integ, &mut own);
-                    (own, done)
-                })
-            })
-            .collect();
-        let mine = run(first, sink);
-        let theirs =
-            handles.into_iter().map(|h| h.join().unwrap_or_else(|e| std::panic::resume_unwind(e))).collect();
-        (mine, theirs)
-    });
-    let (maps, done): (Vec<EvidenceMap>, Vec<_>) = theirs.into_iter().unzip();
-    if let Some((_, e)) = std::iter::once(mine).chain(done).filter_map(Result::err).min_by_key(|(i, _)| *i) {
-        return Err(e);
-    }
-    for map in maps {
-        map.add_into(sink);
-    }
-    Ok(())
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -983,48 +936,6 @@ mod tests {
         }
         slabs_by_block_x(&[], 3, &mut slabs);
         assert!(slabs.iter().all(Vec::is_empty));
-    }
-
-    #[test]
-    fn scans_on_several_workers_give_the_same_bits() {
-        let params = MapParams::default();
-        let scans: Vec<(Vec<[f32; 3]>, [f64; 3])> = (0..7)
-            .map(|i| {
-                let (pts, o) = wall_scan();
-                let shift = i as f32 * 0.013;
-                (pts.into_iter().map(|p| [p[0] + shift, p[1] - shift, p[2]]).collect(), o)
-            })
-            .collect();
-        let add = |integ: &mut Integrator, s: &(Vec<[f32; 3]>, [f64; 3]), sink: &mut dyn BlockSink| {
-            integ.add_scan_into(sink, &s.0, s.1, 1, None);
-            Ok::<_, std::convert::Infallible>(())
-        };
-        let mut serial = EvidenceMap::new(params);
-        for s in &scans {
-            Integrator::new(params).integrate(&mut serial, &s.0, s.1, 1);
-        }
-        for n in [1, 2, 3] {
-            let mut workers: Vec<Integrator> = (0..n).map(|_| Integrator::new(params)).collect();
-            // Into an empty map and into one that already holds the scans' blocks.
-            let mut map = EvidenceMap::new(params);
-            integrate_parallel(&mut workers, &scans, &mut map, add).unwrap();
-            let mut twice = serial.clone();
-            integrate_parallel(&mut workers, &scans, &mut twice, add).unwrap();
-            assert_eq!(map.block_keys_sorted(), serial.block_keys_sorted(), "{n} workers");
-            for k in serial.block_keys_sorted() {
-                assert!(map.block(k) == serial.block(k), "{n} workers: block {k:?} differs");
-                let mut doubled = serial.block(k).unwrap().clone();
-                doubled.add_scaled(serial.block(k).unwrap(), 1);
-                assert!(twice.block(k) == Some(&doubled), "{n} workers, second time: block {k:?} differs");
-            }
-        }
-        // The first failing scan's error, by scan order.
-        let mut workers: Vec<Integrator> = (0..3).map(|_| Integrator::new(params)).collect();
-        let fail =
-            |_: &mut Integrator, i: &usize, _: &mut dyn BlockSink| if *i % 2 == 1 { Err(*i) } else { Ok(()) };
-        let err =
-            integrate_parallel(&mut workers, &[0usize, 1, 2, 3, 4, 5], &mut EvidenceMap::new(params), fail);
-        assert_eq!(err, Err(1));
     }
 
     #[test]

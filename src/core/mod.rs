@@ -1,8 +1,9 @@
 //! The pure, synchronous BGK core: keys and blocks, the sparse kernel, scan → training data →
 //! evidence, the evidence map, and point / box / ray queries.
 //!
-//! Nothing here does I/O, spawns tasks or knows about a network transport. Evidence is integer
-//! fixed-point (see [`evidence`]), so every way of combining the same scans gives the same bits.
+//! Nothing here does I/O, spawns tasks or knows about a network transport; the only threads are
+//! [`pool`]'s, for ingest on several cores. Evidence is integer fixed-point (see [`evidence`]),
+//! so every way of combining the same scans gives the same bits.
 
 pub mod block_table;
 pub mod edit;
@@ -11,6 +12,7 @@ pub mod kernel;
 pub mod key;
 pub mod map;
 pub mod params;
+pub mod pool;
 pub mod pose;
 pub mod query;
 pub mod raw_scan;
@@ -22,7 +24,8 @@ pub mod window;
 
 pub use edit::{EditedBlocks, MapEdit};
 pub use key::{BlockKey, CellKey};
-pub use map::{BlockSink, CellEstimate, CellState, EvidenceMap, Integrator, integrate_parallel};
+pub use map::{BlockSink, CellEstimate, CellState, EvidenceMap, Integrator};
 pub use params::{MapParams, RangeMode, Thresholds};
+pub use pool::{Workers, integrate_parallel};
 pub use pose::{PointFrame, Pose};
 pub use raw_scan::RawScan;

@@ -11,7 +11,7 @@ use super::file::{Commit, MapFile};
 use super::journal::{JournalEntry, JournalIndex, ScanStatus};
 use super::lock::MapLock;
 use super::reader::{CorruptBlock, bad_record, missing_record};
-use crate::core::{BlockKey, BlockSink, EvidenceMap, Integrator, RawScan, integrate_parallel};
+use crate::core::{BlockKey, BlockSink, EvidenceMap, Integrator, RawScan, Workers, integrate_parallel};
 use std::path::Path;
 
 /// How long raw scans stay in the journal once their evidence is applied.
@@ -101,8 +101,8 @@ pub struct DurableMap {
     pub(super) journal: JournalIndex,
     pub(super) version: u64,
     pub(super) integrator: Integrator,
-    /// One integrator per thread for batches of scans (made on first use).
-    workers: Vec<Integrator>,
+    /// One integrator per thread for batches of scans, and their threads (started on first use).
+    workers: Option<Workers>,
     pub(super) threads: usize,
     pub(super) retention: Retention,
     /// Bytes of raw scans stored (journaled and applied rows).
@@ -144,7 +144,7 @@ impl DurableMap {
             journal: opened.journal,
             version: opened.version,
             integrator: Integrator::new(params),
-            workers: Vec::new(),
+            workers: None,
             threads: threads.max(1),
             retention,
             stored_bytes,
@@ -229,11 +229,12 @@ impl DurableMap {
         if self.threads > 1 && scans.len() > 1 {
             // Several scans: one per thread at a time (integer evidence: any order, same bits).
             let params = *self.map.params();
-            self.workers.resize_with(self.threads, || Integrator::new(params));
+            let threads = self.threads;
+            let workers = self.workers.get_or_insert_with(|| Workers::new(params, threads));
             let add = |integ: &mut Integrator, p: &Pending, sink: &mut dyn BlockSink| {
                 p.scan.add_into(integ, sink, 1).map_err(|e| bad_record(&path, &p.source, p.seq, e))
             };
-            integrate_parallel(&mut self.workers, scans, &mut edit, add)?;
+            integrate_parallel(workers, scans, &mut edit, add)?;
         } else {
             for p in scans {
                 p.scan
