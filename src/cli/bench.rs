@@ -104,6 +104,29 @@ fn timed_scan<R>(
     out
 }
 
+/// One timed pass over `scans` into a fresh map: its wall time (ms), each scan's times, and
+/// when it ended.
+fn ingest_pass(
+    workers: &mut Workers,
+    scans: &[Scan],
+    params: MapParams,
+    split: usize,
+) -> (f64, Vec<(usize, std::time::Duration, std::time::Duration, Instant)>, Instant) {
+    let mut map = EvidenceMap::new(params);
+    let timed: ScanTimes = std::sync::Mutex::new(Vec::with_capacity(scans.len()));
+    let t_pass = Instant::now();
+    let done = integrate_parallel(workers, scans, &mut map, |integ, s, sink| {
+        timed_scan(integ, s, &timed, |integ| integ.add_training_into(sink, split));
+        Ok::<_, std::convert::Infallible>(())
+    });
+    if let Err(never) = done {
+        match never {}
+    }
+    let t_end = Instant::now();
+    let timed = timed.into_inner().unwrap_or_else(std::sync::PoisonError::into_inner);
+    ((t_end - t_pass).as_secs_f64() * 1e3, timed, t_end)
+}
+
 fn ingest(a: IngestArgs) -> Result<()> {
     let (scans, source) = if let Some(n) = a.lidar64 {
         let scans = super::bench_world::as_scans(super::bench_world::outdoor_scans(n.max(1)));
@@ -125,28 +148,22 @@ fn ingest(a: IngestArgs) -> Result<()> {
     let threads = a.threads.max(1);
     let split = a.threads_per_scan.max(1);
     let mut workers = Workers::new(params, threads);
+    // With several workers, every pass is followed by one on a single worker, so the speed-up
+    // compares passes taken moments apart: on a shared host the load drifts by tens of percent
+    // between runs (two runs of one binary gave 1231 and 1884 scans/s on one worker).
+    let mut solo = (threads > 1).then(|| Workers::new(params, 1));
     let mut per_scan_ms = Vec::new();
     let mut totals_ms = Vec::new();
+    let mut solo_ms = Vec::new();
     // Where the time goes: per scan, training data and evidence (into the map, or into a
     // worker's own map); per pass, adding the workers' maps into the map after the last scan.
     let mut phases_ms: [Vec<f64>; 2] = Default::default();
     let mut merge_ms = Vec::new();
     let mut pairs_in = (0usize, 0usize);
     for pass in 0..=a.repeat.max(1) {
-        let mut map = EvidenceMap::new(params);
-        let timed: ScanTimes = std::sync::Mutex::new(Vec::with_capacity(scans.len()));
-        let t_pass = Instant::now();
-        let done = integrate_parallel(&mut workers, &scans, &mut map, |integ, s, sink| {
-            timed_scan(integ, s, &timed, |integ| integ.add_training_into(sink, split));
-            Ok::<_, std::convert::Infallible>(())
-        });
-        if let Err(never) = done {
-            match never {}
-        }
-        let t_end = Instant::now();
-        let wall_ms = (t_end - t_pass).as_secs_f64() * 1e3;
+        let (wall_ms, timed, t_end) = ingest_pass(&mut workers, &scans, params, split);
+        let solo_wall_ms = solo.as_mut().map(|w| ingest_pass(w, &scans, params, split).0);
         if pass > 0 {
-            let timed = lock(&timed);
             for &(n_train, train, evidence, _) in timed.iter() {
                 let parts = [train, evidence].map(|d| d.as_secs_f64() * 1e3);
                 per_scan_ms.push(parts.iter().sum());
@@ -159,6 +176,7 @@ fn ingest(a: IngestArgs) -> Result<()> {
             let last = timed.iter().map(|t| t.3).max().unwrap_or(t_end);
             merge_ms.push((t_end - last).as_secs_f64() * 1e3);
             totals_ms.push(wall_ms);
+            solo_ms.extend(solo_wall_ms);
         }
     }
     let [mut train_ms, mut scatter_ms] = phases_ms;
@@ -170,8 +188,10 @@ fn ingest(a: IngestArgs) -> Result<()> {
     let p90 = percentile(&mut per_scan_ms, 0.9);
     let total_med = percentile(&mut totals_ms, 0.5);
     let points_per_s = points as f64 / (total_med / 1e3);
+    let solo_med = percentile(&mut solo_ms, 0.5);
+    let speedup = solo_med / total_med;
     if a.json {
-        let v = serde_json::json!({
+        let mut v = serde_json::json!({
             "bench": "ingest", "source": source, "scans": scans.len(), "repeat": a.repeat.max(1),
             "threads": threads, "threads_per_scan": split, "max_range": max_range,
             "scans_per_s": scans.len() as f64 / (total_med / 1e3),
@@ -182,6 +202,10 @@ fn ingest(a: IngestArgs) -> Result<()> {
             "phase_ms_median": {"training": phase[0], "evidence": phase[1]},
             "merge_ms_median": merge,
         });
+        if solo.is_some() {
+            v["one_worker_total_ms_median"] = serde_json::json!(solo_med);
+            v["speedup_vs_one_worker"] = serde_json::json!(speedup);
+        }
         println!("{v}");
     } else {
         println!(
@@ -194,6 +218,11 @@ fn ingest(a: IngestArgs) -> Result<()> {
             phase[0],
             phase[1],
         );
+        if solo.is_some() {
+            println!(
+                "  one worker, passes interleaved with those: all scans median {solo_med:.2} ms; {threads} workers are {speedup:.2}× as fast"
+            );
+        }
     }
     Ok(())
 }
