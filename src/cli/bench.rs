@@ -85,8 +85,10 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
     }
 }
 
-/// Per scan: training points, training time, evidence time, when it was done.
-type ScanTimes = std::sync::Mutex<Vec<(usize, std::time::Duration, std::time::Duration, Instant)>>;
+/// A scan's training points, training time, evidence time, and when it was done.
+type ScanTime = (usize, std::time::Duration, std::time::Duration, Instant);
+/// Every scan's, in the order they were done.
+type ScanTimes = std::sync::Mutex<Vec<ScanTime>>;
 
 /// Builds one scan's training data, then runs `evidence` on it, and records both times.
 fn timed_scan<R>(
@@ -111,7 +113,7 @@ fn ingest_pass(
     scans: &[Scan],
     params: MapParams,
     split: usize,
-) -> (f64, Vec<(usize, std::time::Duration, std::time::Duration, Instant)>, Instant) {
+) -> (f64, Vec<ScanTime>, Instant) {
     let mut map = EvidenceMap::new(params);
     let timed: ScanTimes = std::sync::Mutex::new(Vec::with_capacity(scans.len()));
     let t_pass = Instant::now();
