@@ -208,6 +208,7 @@ fn bench_ingest_json() {
     // No scans: the built-in simulated room (12 scans).
     let json = run_ok_text(dir, ["bench", "ingest", "--repeat", "1", "--json"]);
     check_bench(&json, 12.0, 1.0);
+    assert!(!json.contains("speedup_vs_one_worker"), "one worker has nothing to compare with: {json}");
 
     let sim = simulate(dir, 3);
     let mut args: Vec<String> =
@@ -215,6 +216,12 @@ fn bench_ingest_json() {
     args.extend(sim.scans.iter().cloned());
     let json = run_ok_text(dir, &args);
     check_bench(&json, 3.0, 2.0);
+    // Passes on one worker, interleaved with the two-worker passes, and the ratio of the medians.
+    let (solo, total) =
+        (json_number(&json, "one_worker_total_ms_median"), json_number(&json, "total_ms_median"));
+    assert!(solo.is_finite() && solo > 0.0, "{json}");
+    let speedup = json_number(&json, "speedup_vs_one_worker");
+    assert!((speedup - solo / total).abs() <= 1e-9 * speedup, "{json}");
 }
 
 /// The demo serves on free loopback ports, streams its robot over gRPC, and (with `--exit`)

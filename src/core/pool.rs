@@ -8,8 +8,8 @@
 //!
 //! This module holds the crate's one `unsafe` for threads: a batch's jobs borrow the caller's
 //! scans and closure, which a thread that outlives the call cannot name, so their lifetime is
-//! erased when they are handed over ([`Batch::start`]) and every job is waited for before the
-//! borrowed data can go ([`Batch`]'s `Drop`, which runs on unwinding as well).
+//! erased when they are handed over (`Batch::start`) and every job is waited for before the
+//! borrowed data can go (`Batch`'s `Drop`, which runs on unwinding as well).
 #![allow(unsafe_code)]
 
 use super::evidence::BlockEvidence;
@@ -175,7 +175,7 @@ impl Drop for Batch<'_, '_> {
 /// add into an edit they can drop. A panic in `add` on any thread is passed on to the caller.
 ///
 /// A helper's block that `sink` lacks is moved in; the blocks both hold are added on all the
-/// threads at once (see [`add_map_on_all_threads`]).
+/// threads at once (see `add_map_on_all_threads`).
 pub fn integrate_parallel<S, K, E>(
     workers: &mut Workers,
     scans: &[S],
