@@ -6,7 +6,7 @@
 //! timestamps in the pass), about 5% of a pass, on a machine where an idle vCPU is slow to wake.
 //! Threads that wait for the next batch cost a message instead.
 //!
-//! This module holds the crate's one `unsafe` for threads: a batch's jobs borrow the caller's
+//! This module's one `unsafe`: a batch's jobs borrow the caller's
 //! scans and closure, which a thread that outlives the call cannot name, so their lifetime is
 //! erased when they are handed over (`Batch::start`) and every job is waited for before the
 //! borrowed data can go (`Batch`'s `Drop`, which runs on unwinding as well).
