@@ -35,8 +35,9 @@ impl CellState {
 
 pub use super::evidence::Evidence;
 
-/// What a reader gets for one cell.
+/// What a reader gets for one cell. `repr(C)`: see [`super::query::PointAnswer`].
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[repr(C)]
 pub struct CellEstimate {
     pub probability: f64,
     pub variance: f64,
