@@ -84,15 +84,6 @@ impl BlockSink for MapEdit<'_> {
         MapEdit::add_delta(self, delta, sign);
     }
 
-    fn add_whole_block(&mut self, key: BlockKey, block: Arc<BlockEvidence>) {
-        if self.blocks.contains_key(&key) || self.base.block(key).is_some() {
-            self.add_block(key, &block, 1);
-        } else {
-            // New to both the edit and its base: taken as it is.
-            self.blocks.insert(key, block);
-        }
-    }
-
     fn take_existing_block(&mut self, key: BlockKey) -> Option<Arc<BlockEvidence>> {
         self.blocks.remove(&key).or_else(|| self.base.block_arc(key))
     }

@@ -131,13 +131,34 @@ pub trait BlockSink {
     /// Adds (`sign` ≥ 0) or subtracts (`sign` < 0) a scan's delta.
     fn add_delta(&mut self, delta: &ScanDelta, sign: i64);
 
-    /// Adds a whole block of evidence (another map's, so it holds some) to block `key`; a
-    /// block the sink lacks is taken as it is.
-    fn add_whole_block(&mut self, key: BlockKey, block: Arc<BlockEvidence>);
-
     /// Block `key` taken out (as [`Self::take_block`]) if the sink has one; `None`, changing
     /// nothing, if it has none.
     fn take_existing_block(&mut self, key: BlockKey) -> Option<Arc<BlockEvidence>>;
+
+    /// Adds a whole block of evidence (another map's, so it holds some) to block `key`; a
+    /// block the sink lacks is taken as it is.
+    fn add_whole_block(&mut self, key: BlockKey, mut block: Arc<BlockEvidence>) {
+        match self.take_existing_block(key) {
+            Some(mut mine) => {
+                add_whole(&mut mine, &mut block);
+                self.put_block(key, mine);
+            }
+            // Not an emptiness test first: a map's blocks hold evidence, and reading all 8 KiB
+            // of one (a block another core has just written) was about a quarter of adding a
+            // worker's map in.
+            None => self.put_block(key, block),
+        }
+    }
+}
+
+/// `mine += theirs`, leaving the sum in `mine`: added into `theirs` instead (and swapped) where
+/// `mine` is shared (a snapshot's) and `theirs` is not, so no block is copied that need not be;
+/// the sum is the same integers either way.
+pub(crate) fn add_whole(mine: &mut Arc<BlockEvidence>, theirs: &mut Arc<BlockEvidence>) {
+    if Arc::get_mut(mine).is_none() && Arc::get_mut(theirs).is_some() {
+        std::mem::swap(mine, theirs);
+    }
+    Arc::make_mut(mine).add_scaled(theirs, 1);
 }
 
 impl BlockSink for EvidenceMap {
@@ -162,19 +183,6 @@ impl BlockSink for EvidenceMap {
 
     fn add_delta(&mut self, delta: &ScanDelta, sign: i64) {
         self.apply(delta, sign);
-    }
-
-    fn add_whole_block(&mut self, key: BlockKey, block: Arc<BlockEvidence>) {
-        match self.blocks.get_mut(&key) {
-            Some(s) => {
-                self.changes.note(key);
-                s.block_mut().add_scaled(&block, 1);
-            }
-            // Not `insert_shared_block`: a map's blocks hold evidence, and reading all 8 KiB
-            // of one to test that (a block another core has just written, for the maps of
-            // `integrate_parallel`'s workers) was about a quarter of adding a worker's map in.
-            None => self.put_block(key, block),
-        }
     }
 
     fn take_existing_block(&mut self, key: BlockKey) -> Option<Arc<BlockEvidence>> {

@@ -14,7 +14,7 @@
 
 use super::evidence::BlockEvidence;
 use super::key::BlockKey;
-use super::map::{BlockSink, EvidenceMap, Integrator};
+use super::map::{BlockSink, EvidenceMap, Integrator, add_whole};
 use super::params::MapParams;
 use std::any::Any;
 use std::marker::PhantomData;
@@ -243,14 +243,10 @@ where
 /// [`add_block_pairs`], `.1` holds their sum.
 type BlockPair = (BlockKey, Arc<BlockEvidence>, Arc<BlockEvidence>);
 
-/// Adds each pair's blocks into `.1`, or into `.2` where `.1` is shared (a snapshot's) and `.2`
-/// is not, so no block is copied that need not be; the sum is the same integers either way.
+/// Adds each pair's blocks into `.1` ([`add_whole`]).
 fn add_block_pairs(pairs: &mut [BlockPair]) {
     for (_, mine, theirs) in pairs.iter_mut() {
-        if Arc::get_mut(mine).is_none() && Arc::get_mut(theirs).is_some() {
-            std::mem::swap(mine, theirs);
-        }
-        Arc::make_mut(mine).add_scaled(theirs, 1);
+        add_whole(mine, theirs);
     }
 }
 
