@@ -644,15 +644,22 @@ async fn serve_in_process(service: std::sync::Arc<bgkmap::service::MapService>) 
     format!("http://{addr}")
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
-async fn a_full_queue_answers_resource_exhausted_with_retry_after() {
+/// A server in this process whose journal queue holds one scan, with map `room`; the data
+/// directory lives as long as the returned guard.
+async fn room_behind_a_queue_of_one() -> (tempfile::TempDir, Client) {
     use bgkmap::service::{MapService, ServiceConfig};
     let dir = tempfile::tempdir().unwrap();
     let config = ServiceConfig { queue_capacity: 1, ..ServiceConfig::default() };
     let service = std::sync::Arc::new(MapService::open(dir.path(), config).unwrap());
-    let url = serve_in_process(service.clone()).await;
+    let url = serve_in_process(service).await;
     let mut client = connect_url(url).await;
     client.create_map(pb::CreateMapRequest { map: "room".into(), params: Some(pb_params()) }).await.unwrap();
+    (dir, client)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_full_queue_answers_resource_exhausted_with_retry_after() {
+    let (_dir, mut client) = room_behind_a_queue_of_one().await;
     let (_, scans) = simulate(0, 4, &Lidar::default());
 
     // Many concurrent scans into a queue of one: some are refused as busy, none is lost.
@@ -688,13 +695,7 @@ async fn a_full_queue_answers_resource_exhausted_with_retry_after() {
 /// its oldest; every scan of every stream is applied once.
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn streams_wait_for_room_in_a_queue_the_others_fill() {
-    use bgkmap::service::{MapService, ServiceConfig};
-    let dir = tempfile::tempdir().unwrap();
-    let config = ServiceConfig { queue_capacity: 1, ..ServiceConfig::default() };
-    let service = std::sync::Arc::new(MapService::open(dir.path(), config).unwrap());
-    let url = serve_in_process(service.clone()).await;
-    let mut client = connect_url(url).await;
-    client.create_map(pb::CreateMapRequest { map: "room".into(), params: Some(pb_params()) }).await.unwrap();
+    let (_dir, mut client) = room_behind_a_queue_of_one().await;
     let (_, scans) = simulate(0, 12, &Lidar::default());
     let streams = (0..4).map(|r| {
         let mut c = client.clone();
