@@ -190,8 +190,11 @@ fn ingest(a: IngestArgs) -> Result<()> {
     let p90 = percentile(&mut per_scan_ms, 0.9);
     let total_med = percentile(&mut totals_ms, 0.5);
     let points_per_s = points as f64 / (total_med / 1e3);
-    let solo_med = percentile(&mut solo_ms, 0.5);
-    let speedup = solo_med / total_med;
+    // The one-worker median and the speed-up over it, with several workers.
+    let solo = solo.map(|_| {
+        let solo_med = percentile(&mut solo_ms, 0.5);
+        (solo_med, solo_med / total_med)
+    });
     if a.json {
         let mut v = serde_json::json!({
             "bench": "ingest", "source": source, "scans": scans.len(), "repeat": a.repeat.max(1),
@@ -204,7 +207,7 @@ fn ingest(a: IngestArgs) -> Result<()> {
             "phase_ms_median": {"training": phase[0], "evidence": phase[1]},
             "merge_ms_median": merge,
         });
-        if solo.is_some() {
+        if let Some((solo_med, speedup)) = solo {
             v["one_worker_total_ms_median"] = serde_json::json!(solo_med);
             v["speedup_vs_one_worker"] = serde_json::json!(speedup);
         }
@@ -220,7 +223,7 @@ fn ingest(a: IngestArgs) -> Result<()> {
             phase[0],
             phase[1],
         );
-        if solo.is_some() {
+        if let Some((solo_med, speedup)) = solo {
             println!(
                 "  one worker, passes interleaved with those: all scans median {solo_med:.2} ms; {threads} workers are {speedup:.2}× as fast"
             );
