@@ -317,6 +317,8 @@ fn bench_query_json() {
         }
         assert_eq!(v[t]["batch"].as_u64(), Some(2000), "{json}");
     }
+    assert_positive(&v, "/in_process/points_visited_per_s");
+    assert!(v["grpc"]["points_visited_per_s"].is_null(), "only in-process visits: {json}");
     for key in
         ["single_p99_us_under_ingest", "single_p99_us_under_room_ingest", "room_background_scans_per_s"]
     {

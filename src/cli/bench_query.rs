@@ -67,7 +67,8 @@ enum Op {
 }
 
 /// Repeats `op` over the workload's distinct payloads until [`MIN_BUSY`] and [`MIN_CALLS`]
-/// (after one untimed call); items per second.
+/// (after one untimed call); items per second of the median call, so a call the host's other
+/// tenants slowed down moves the figure no more than one that ran alone.
 async fn throughput<T: QueryTransport>(t: &mut T, w: &Workload, op: Op) -> Result<f64> {
     let distinct = match op {
         Op::Points => w.point_batches.len(),
@@ -78,14 +79,15 @@ async fn throughput<T: QueryTransport>(t: &mut T, w: &Workload, op: Op) -> Resul
         Op::Rays(k) => t.rays(w, k, i % distinct).await,
     };
     once(t, 0).await?;
-    let (mut items, mut busy, mut calls) = (0usize, Duration::ZERO, 0usize);
-    while calls < MIN_CALLS || busy < MIN_BUSY {
+    let (mut rates, mut busy) = (Vec::new(), Duration::ZERO);
+    while rates.len() < MIN_CALLS || busy < MIN_BUSY {
         let t0 = Instant::now();
-        items += once(t, calls).await?;
-        busy += t0.elapsed();
-        calls += 1;
+        let items = once(t, rates.len()).await?;
+        let dt = t0.elapsed();
+        busy += dt;
+        rates.push(items as f64 / dt.as_secs_f64());
     }
-    Ok(items as f64 / busy.as_secs_f64())
+    Ok(percentile(&mut rates, 0.5))
 }
 
 /// Every figure of one transport.
@@ -150,7 +152,10 @@ pub fn run_bench(a: &QueryBenchArgs) -> Result<Value> {
         ..Default::default()
     };
     runtime()?.block_on(async {
-        v["in_process"] = measure(&mut InProcess::new(&map), &w).await?;
+        let mut in_process = InProcess::new(&map);
+        v["in_process"] = measure(&mut in_process, &w).await?;
+        in_process.visit = true;
+        v["in_process"]["points_visited_per_s"] = json!(throughput(&mut in_process, &w, Op::Points).await?);
         if a.in_process_only {
             return Ok(());
         }
@@ -210,10 +215,14 @@ fn print_summary(v: &Value) {
     );
     for t in ["in_process", "grpc", "http", "zenoh"].into_iter().filter(|t| !v[*t].is_null()) {
         println!(
-            "  {t}: points ({} per call) {:.2} M/s; single point p50 {:.0} µs p99 {:.0} µs; boxes 1 m {:.3} ms, \
+            "  {t}: points ({} per call) {:.2} M/s{}; single point p50 {:.0} µs p99 {:.0} µs; boxes 1 m {:.3} ms, \
              10 m {:.2} ms ({:.0} cells); rays ({} per call) 8 m {:.3} M/s, 30 m {:.3} M/s",
             v[t]["batch"],
             f(&format!("/{t}/points_per_s")) / 1e6,
+            match v[t]["points_visited_per_s"].as_f64() {
+                Some(r) => format!(" into a vector, {:.2} M/s visited", r / 1e6),
+                None => String::new(),
+            },
             f(&format!("/{t}/single_p50_us")),
             f(&format!("/{t}/single_p99_us")),
             f(&format!("/{t}/box_1m_ms_median")),
