@@ -758,17 +758,26 @@ const MAX_STENCIL: usize = 2 * (super::params::MAX_ELL_IN_CELLS as usize) + 3;
 /// Block-key bounds of the points' own cells (the floor of the least and greatest coordinates:
 /// floor is monotone, so one floor per axis, not one per point).
 fn block_bounds(pts: &[CellPoint]) -> ([i32; 3], [i32; 3]) {
-    let mut lo = [f64::INFINITY; 3];
-    let mut hi = [f64::NEG_INFINITY; 3];
-    for (p, _) in pts {
-        // Plain comparisons, not `f64::min` (whose NaN rules cost instructions; the points are
-        // finite).
-        for i in 0..3 {
-            lo[i] = if p[i] < lo[i] { p[i] } else { lo[i] };
-            hi[i] = if p[i] > hi[i] { p[i] } else { hi[i] };
+    // Two points a step, each into its own bounds (merged at the end): a running min / max is
+    // a chain through every point, and one chain per axis left the loop waiting on it
+    // (`tile_len` was ~4% of sample-scan ingest).
+    let mut lo = [[f64::INFINITY; 3]; 2];
+    let mut hi = [[f64::NEG_INFINITY; 3]; 2];
+    let pairs = pts.chunks_exact(2);
+    let last = pairs.remainder();
+    for pair in pairs.chain(std::iter::once(last)) {
+        for (k, (p, _)) in pair.iter().enumerate() {
+            // Plain comparisons, not `f64::min` (whose NaN rules cost instructions; the
+            // points are finite).
+            for i in 0..3 {
+                lo[k][i] = if p[i] < lo[k][i] { p[i] } else { lo[k][i] };
+                hi[k][i] = if p[i] > hi[k][i] { p[i] } else { hi[k][i] };
+            }
         }
     }
     let block = |v: f64| super::evidence::floor_i32(v) >> BLOCK_SHIFT;
+    let lo: [f64; 3] = std::array::from_fn(|i| if lo[1][i] < lo[0][i] { lo[1][i] } else { lo[0][i] });
+    let hi: [f64; 3] = std::array::from_fn(|i| if hi[1][i] > hi[0][i] { hi[1][i] } else { hi[0][i] });
     (lo.map(block), hi.map(block))
 }
 
