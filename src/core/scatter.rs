@@ -419,7 +419,8 @@ impl Scatter {
         let next = &mut self.next;
         next.clear();
         next.extend_from_slice(&self.starts[..n_slots]);
-        self.cells_sorted.clear();
+        // Every place is written below (the sort is a permutation), so what a previous call
+        // left there needs no zeroing.
         self.cells_sorted.resize(pts.len(), ([0.0; 3], false));
         for (&s, &point) in self.bucket_of.iter().zip(pts) {
             let at = &mut next[s as usize];
