@@ -36,12 +36,15 @@ pub fn query_points(
 
 /// Points looked up per round of [`for_each_point`]: that many independent hash lookups and
 /// loads are issued back to back, so their cache misses overlap instead of queueing one
-/// behind the other.
-const POINT_BATCH: usize = 32;
+/// behind the other. 64 (the most [`EvidenceMap::blocks_of`] takes) over 32: points in-process
+/// 11.2–18.2 → 16.7–18.9 M/s into a vector and 14.6–20.9 → 19.6–20.3 M/s visited, five
+/// alternated `bench query --in-process-only` runs (2026-12-04 evening, Xeon VM); 96 and 128
+/// were no faster than 64, 16 slower.
+const POINT_BATCH: usize = 64;
 
 /// [`query_points`] without the answer vector: `f` gets each point's answer, in order.
 ///
-/// Points are processed in rounds of 32: keys, then the block lookups in stages (every table
+/// Points are processed in rounds of [`POINT_BATCH`]: keys, then the block lookups in stages (every table
 /// slot, then every entry; [`EvidenceMap::blocks_of`]), then a prefetch of every cell, then
 /// the estimates (measured: faster than prefetching inside the lookup loop). A cell without
 /// evidence answers the prior estimate computed once (the same bits as
