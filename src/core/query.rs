@@ -44,7 +44,7 @@ const POINT_BATCH: usize = 64;
 
 /// [`query_points`] without the answer vector: `f` gets each point's answer, in order.
 ///
-/// Points are processed in rounds of [`POINT_BATCH`]: keys, then the block lookups in stages (every table
+/// Points are processed in rounds of 64: keys, then the block lookups in stages (every table
 /// slot, then every entry; [`EvidenceMap::blocks_of`]), then a prefetch of every cell, then
 /// the estimates (measured: faster than prefetching inside the lookup loop). A cell without
 /// evidence answers the prior estimate computed once (the same bits as
