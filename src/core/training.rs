@@ -465,9 +465,12 @@ mod tests {
         let mut table = VoxelCentroids::default();
         for round in 0..4 {
             // Clustered points (many per voxel) and scattered ones (a new voxel each), so the
-            // table grows several times within one call; then fewer, so that the last clear
-            // walks the occupied slots instead of emptying the whole table.
-            let n = [500, 40_000, 3_000, 200][round];
+            // table grows several times within one call, past the size where rounds get
+            // longer (`LARGE_TABLE_BYTES`); then fewer, into that large table, so that the last
+            // clear walks the occupied slots instead of emptying the whole table.
+            let n = [500, 100_000, 30_000, 200][round];
+            let large = table.slots.len() * std::mem::size_of::<Slot>() > LARGE_TABLE_BYTES;
+            assert_eq!(large, round >= 2, "round {round} on a large table");
             let pts: Vec<[f64; 3]> = (0..n)
                 .map(|i| match i % 97 {
                     0 => [f64::NAN, 0.0, 0.0],
