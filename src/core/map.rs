@@ -302,11 +302,14 @@ impl EvidenceMap {
         self.blocks.get(&key).map(|s| &*s.block)
     }
 
-    /// The blocks of a batch of keys into `out` (same length), their lookups staged so the
-    /// cache misses of the whole batch overlap: all table slots, then all entries (see
-    /// [`BlockTable`]).
+    /// Keys one [`Self::blocks_of`] call takes at most.
+    pub const MAX_BATCH_LOOKUPS: usize = 64;
+
+    /// The blocks of a batch of at most [`Self::MAX_BATCH_LOOKUPS`] keys into `out` (same
+    /// length), their lookups staged so the cache misses of the whole batch overlap: all table
+    /// slots, then all entries (see [`BlockTable`]).
     pub fn blocks_of<'a>(&'a self, keys: &[Option<BlockKey>], out: &mut [Option<&'a BlockEvidence>]) {
-        const MAX: usize = 64;
+        const MAX: usize = EvidenceMap::MAX_BATCH_LOOKUPS;
         assert!(keys.len() <= MAX && out.len() == keys.len(), "batches of at most {MAX} keys");
         let mut hashes = [None; MAX];
         for (h, k) in hashes.iter_mut().zip(keys) {

@@ -36,11 +36,12 @@ pub fn query_points(
 
 /// Points looked up per round of [`for_each_point`]: that many independent hash lookups and
 /// loads are issued back to back, so their cache misses overlap instead of queueing one
-/// behind the other. 64 (the most [`EvidenceMap::blocks_of`] takes) over 32: points in-process
-/// 11.2–18.2 → 16.7–18.9 M/s into a vector and 14.6–20.9 → 19.6–20.3 M/s visited, five
-/// alternated `bench query --in-process-only` runs (2026-12-04 evening, Xeon VM); 96 and 128
-/// were no faster than 64, 16 slower.
+/// behind the other. 64 (the most [`EvidenceMap::blocks_of`] takes, checked at compile time)
+/// over 32: points in-process 11.2–18.2 → 16.7–18.9 M/s into a vector and 14.6–20.9 →
+/// 19.6–20.3 M/s visited, five alternated `bench query --in-process-only` runs (2026-12-04
+/// evening, Xeon VM); 96 and 128 were no faster than 64, 16 slower.
 const POINT_BATCH: usize = 64;
+const _: () = assert!(POINT_BATCH <= EvidenceMap::MAX_BATCH_LOOKUPS, "a round is one blocks_of call");
 
 /// [`query_points`] without the answer vector: `f` gets each point's answer, in order.
 ///
