@@ -153,7 +153,7 @@ fn ingest(a: IngestArgs) -> Result<()> {
     // With several workers, every pass is followed by one on a single worker, so the speed-up
     // compares passes taken moments apart: on a shared host the load drifts by tens of percent
     // between runs (two runs of one binary gave 1231 and 1884 scans/s on one worker).
-    let mut solo = (threads > 1).then(|| Workers::new(params, 1));
+    let mut solo_workers = (threads > 1).then(|| Workers::new(params, 1));
     let mut per_scan_ms = Vec::new();
     let mut totals_ms = Vec::new();
     let mut solo_ms = Vec::new();
@@ -164,7 +164,7 @@ fn ingest(a: IngestArgs) -> Result<()> {
     let mut pairs_in = (0usize, 0usize);
     for pass in 0..=a.repeat.max(1) {
         let (wall_ms, timed, t_end) = ingest_pass(&mut workers, &scans, params, split);
-        let solo_wall_ms = solo.as_mut().map(|w| ingest_pass(w, &scans, params, split).0);
+        let solo_wall_ms = solo_workers.as_mut().map(|w| ingest_pass(w, &scans, params, split).0);
         if pass > 0 {
             for &(n_train, train, evidence, _) in timed.iter() {
                 let parts = [train, evidence].map(|d| d.as_secs_f64() * 1e3);
@@ -191,7 +191,7 @@ fn ingest(a: IngestArgs) -> Result<()> {
     let total_med = percentile(&mut totals_ms, 0.5);
     let points_per_s = points as f64 / (total_med / 1e3);
     // The one-worker median and the speed-up over it, with several workers.
-    let solo = solo.map(|_| {
+    let solo = solo_workers.map(|_| {
         let solo_med = percentile(&mut solo_ms, 0.5);
         (solo_med, solo_med / total_med)
     });
