@@ -190,7 +190,7 @@ fn tiled(base: &EvidenceMap, blocks: usize, first_tile: usize) -> EvidenceMap {
                 break;
             }
             let block: &BlockEvidence = base.block(*k).expect("key of the map");
-            map.insert_block(BlockKey::new(k.x + tx, k.y + ty, k.z), Box::new(block.clone()));
+            map.insert_block(BlockKey::new(k.x + tx, k.y + ty, k.z), block.to_box());
         }
         tile += 1;
     }

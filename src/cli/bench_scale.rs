@@ -17,7 +17,6 @@
 use super::bench::percentile;
 use super::bench_maps::Cleanup;
 use super::bench_world::{RaySpec, build_map, outdoor_params, outdoor_scans, random_direction};
-use crate::core::evidence::BlockEvidence;
 use crate::core::key::BLOCK_CELLS;
 use crate::core::query::{StopAt, cast_ray, query_points};
 use crate::core::{BlockKey, EvidenceMap, Integrator, MapParams};
@@ -162,12 +161,16 @@ fn query_rates(map: &EvidenceMap, room: &[SimScan]) -> (f64, f64) {
 
 /// RAM and disk bytes per cell of `map` (see the module docs).
 fn memory_of(map: &EvidenceMap) -> Result<Value> {
-    // Per block: the evidence, the Arc's two counters, and the block table's entry (key,
-    // pointer and ray summary) and slots at its worst load just after growing.
-    let per_block = std::mem::size_of::<BlockEvidence>()
-        + 2 * std::mem::size_of::<usize>()
-        + EvidenceMap::TABLE_BYTES_PER_BLOCK;
-    let ram = (map.block_count() * per_block) as f64;
+    // Per block: its cells in the block's layout (wide or narrow), the Arc's two counters,
+    // and the block table's entry (key, pointer and ray summary) and slots at its worst load
+    // just after growing.
+    let per_block = 2 * std::mem::size_of::<usize>() + EvidenceMap::TABLE_BYTES_PER_BLOCK;
+    let (mut ram, mut wide) = (0usize, 0usize);
+    for (_, b) in map.blocks_unsorted() {
+        ram += per_block + b.data_bytes();
+        wide += usize::from(b.is_wide());
+    }
+    let ram = ram as f64;
     let dir = std::env::temp_dir().join(format!("bgkmap-bench-scale-{}", std::process::id()));
     std::fs::create_dir_all(&dir)?;
     let _cleanup = Cleanup(dir.clone());
@@ -184,7 +187,7 @@ fn memory_of(map: &EvidenceMap) -> Result<Value> {
     let allocated = (map.block_count() * BLOCK_CELLS) as f64;
     let with_evidence = map.cells_with_evidence() as f64;
     Ok(
-        json!({"blocks": map.block_count(), "cells_allocated": allocated, "cells_with_evidence": with_evidence,
+        json!({"blocks": map.block_count(), "wide_blocks": wide, "cells_allocated": allocated, "cells_with_evidence": with_evidence,
               "ram_bytes_per_allocated_cell": ram / allocated, "ram_bytes_per_cell_with_evidence": ram / with_evidence,
               "disk_bytes_per_allocated_cell": disk / allocated,
               "disk_bytes_per_cell_with_evidence": disk / with_evidence,

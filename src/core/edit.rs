@@ -26,21 +26,23 @@ impl<'a> MapEdit<'a> {
         Self { base, blocks: FxHashMap::default() }
     }
 
-    fn block_mut(&mut self, key: BlockKey) -> &mut BlockEvidence {
+    /// Block `key`, to change it (widened first if `wide`: [`BlockEvidence::make_mut`]).
+    fn block_mut(&mut self, key: BlockKey, wide: bool) -> &mut BlockEvidence {
         let base = self.base;
-        Arc::make_mut(self.blocks.entry(key).or_insert_with(|| shared_or_zero(base, key)))
+        let block = self.blocks.entry(key).or_insert_with(|| shared_or_zero(base, key, wide));
+        BlockEvidence::make_mut(block, wide)
     }
 
     /// Adds (`sign` ≥ 0) or subtracts (`sign` < 0) a scan's evidence.
     pub fn add_delta(&mut self, delta: &ScanDelta, sign: i64) {
         for (key, d, rows) in delta.iter() {
-            self.block_mut(key).add_delta(d, sign, rows);
+            self.block_mut(key, rows[0] != 0).add_delta(d, sign, rows);
         }
     }
 
     /// Adds (`sign` ≥ 0) or subtracts (`sign` < 0) one block of evidence.
     pub fn add_block(&mut self, key: BlockKey, block: &BlockEvidence, sign: i64) {
-        self.block_mut(key).add_scaled(block, sign);
+        self.block_mut(key, block.is_wide()).add_scaled(block, sign);
     }
 
     /// Blocks touched so far.
@@ -71,9 +73,9 @@ impl<'a> MapEdit<'a> {
 }
 
 impl BlockSink for MapEdit<'_> {
-    fn take_block(&mut self, key: BlockKey) -> Arc<BlockEvidence> {
+    fn take_block(&mut self, key: BlockKey, wide: bool) -> Arc<BlockEvidence> {
         let base = self.base;
-        self.blocks.remove(&key).unwrap_or_else(|| shared_or_zero(base, key))
+        self.blocks.remove(&key).unwrap_or_else(|| shared_or_zero(base, key, wide))
     }
 
     fn put_block(&mut self, key: BlockKey, block: Arc<BlockEvidence>) {
@@ -89,9 +91,9 @@ impl BlockSink for MapEdit<'_> {
     }
 }
 
-/// `map`'s block `key` (shared until written), or a zero block.
-fn shared_or_zero(map: &EvidenceMap, key: BlockKey) -> Arc<BlockEvidence> {
-    map.block_arc(key).unwrap_or_else(zeroed_block)
+/// `map`'s block `key` (shared until written), or a zero block (`wide` or narrow).
+fn shared_or_zero(map: &EvidenceMap, key: BlockKey, wide: bool) -> Arc<BlockEvidence> {
+    map.block_arc(key).unwrap_or_else(|| zeroed_block(wide))
 }
 
 impl EvidenceMap {
@@ -143,14 +145,14 @@ mod tests {
         integ.integrate(&mut map, &pts, [0.0, 0.0, 0.5], 1);
         let before = map.clone();
         let (in_base, new) = (map.block_keys_sorted()[0], BlockKey::new(900, 900, 900));
-        let block = Arc::new(map.block(in_base).unwrap().clone());
+        let block: Arc<BlockEvidence> = map.block(in_base).unwrap().to_box().into();
         let mut edit = map.edit();
         edit.add_whole_block(in_base, block.clone());
         edit.add_whole_block(in_base, block.clone());
         edit.add_whole_block(new, block.clone());
         let blocks = edit.finish();
         assert_eq!(map.block_keys_sorted(), before.block_keys_sorted(), "the map is untouched");
-        let mut tripled = (*block).clone();
+        let mut tripled = block.to_box();
         tripled.add_scaled(&block, 1);
         tripled.add_scaled(&block, 1);
         let got: std::collections::BTreeMap<_, _> = blocks.into_iter().collect();

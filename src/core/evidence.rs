@@ -14,6 +14,7 @@ use super::key::{BLOCK_CELLS, BLOCK_EDGE, BlockKey, CellKey};
 use super::map::probability_variance;
 use super::params::{MapParams, Thresholds};
 use super::training::TrainingSet;
+use std::sync::Arc;
 
 /// The raw evidence of one cell: occupied mass `a` and free mass `b` (fixed-point, unit kernel).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -27,19 +28,6 @@ impl Evidence {
     pub fn is_empty(self) -> bool {
         self.a == 0 && self.b == 0
     }
-}
-
-/// Evidence of one map block, a cell's two sums side by side: a reader of one cell touches one
-/// cache line (a cell is 16 bytes at a multiple of 16, so no cell straddles two 64-byte lines),
-/// which is what point and ray queries over maps far larger than the caches wait on.
-///
-/// Aligned to 16, not 64: a 64-byte alignment made every new block an aligned allocation
-/// (`posix_memalign`, then zeroed by hand), where a 16-byte one is `calloc`, which hands out
-/// memory fresh from the system without writing zeros over it again.
-#[derive(Clone, PartialEq, Eq)]
-#[repr(C, align(16))]
-pub struct BlockEvidence {
-    cells: [Evidence; BLOCK_CELLS],
 }
 
 /// The largest probability and variance over all cells of a block (cells without evidence
@@ -56,7 +44,7 @@ impl BlockSummary {
     /// The summary of `block` under `params` (the map's).
     pub fn of(block: &BlockEvidence, params: &MapParams) -> Self {
         let (mut max_p, mut max_var) = (f64::NEG_INFINITY, f64::NEG_INFINITY);
-        for &e in &block.cells {
+        for e in block.cells() {
             let (p, var) = probability_variance(e, params);
             if p.is_nan() || var.is_nan() {
                 (max_p, max_var) = (f64::INFINITY, f64::INFINITY);
@@ -79,53 +67,256 @@ impl BlockSummary {
     }
 }
 
+/// Evidence of one map block, in one of two layouts chosen by what the block holds:
+///
+/// - **wide** (8 KiB): each cell's two sums side by side, `a b a b …`. A reader of one cell
+///   touches one cache line (a cell is 16 bytes at a multiple of 16, so no cell straddles two
+///   64-byte lines), which is what point and ray queries over maps far larger than the caches
+///   wait on.
+/// - **narrow** (4 KiB): only the free sums, `b b …`, for a block no hit has reached, whose `a`
+///   are all zero. Most of the space a range sensor sweeps is such blocks, far from any surface:
+///   half the blocks of the simulated outdoor drive, a quarter of the room's.
+///
+/// The layout is storage only: equality, the store's encoding and every answer depend on the
+/// cells' values alone. A narrow block is widened when the first hit mass reaches it; a block
+/// read from the store is narrow whenever it can be.
+///
+/// A dynamically sized type (the slice's length is the layout), so always behind a pointer:
+/// `Arc<BlockEvidence>` in maps (copied on write, see [`BlockEvidence::make_mut`]) and
+/// `Box<BlockEvidence>` when loaded. Both come from `malloc`, whose blocks are 16-byte aligned,
+/// and the slice starts 0 (box) or 16 (arc, after its two counters) bytes in, so each wide cell
+/// sits at a multiple of 16. The zeroed blocks come from `calloc`, which hands out memory fresh
+/// from the system without writing zeros over it again.
+#[repr(transparent)]
+pub struct BlockEvidence {
+    data: [i64],
+}
+
+/// Words of a wide block.
+const WIDE: usize = 2 * BLOCK_CELLS;
+
 impl std::fmt::Debug for BlockEvidence {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "BlockEvidence {{ cells with evidence: {} }}", self.cells_with_evidence())
+        let layout = if self.is_wide() { "wide" } else { "narrow" };
+        write!(f, "BlockEvidence {{ {layout}, cells with evidence: {} }}", self.cells_with_evidence())
+    }
+}
+
+/// Equal when every cell holds the same evidence, whatever the two layouts.
+impl PartialEq for BlockEvidence {
+    fn eq(&self, other: &Self) -> bool {
+        if self.is_wide() == other.is_wide() {
+            self.data == other.data
+        } else {
+            (0..BLOCK_CELLS).all(|i| self.get(i) == other.get(i))
+        }
+    }
+}
+
+impl Eq for BlockEvidence {}
+
+// The one place blocks are made from their words: each cast keeps the slice's length (the
+// layout), and `BlockEvidence` is a transparent wrapper of that slice.
+#[allow(unsafe_code)]
+impl BlockEvidence {
+    fn zeroed_words_arc(wide: bool) -> Arc<Self> {
+        let len = if wide { WIDE } else { BLOCK_CELLS };
+        // SAFETY: all-zero bytes are a valid `i64` (0).
+        let words: Arc<[i64]> = unsafe { Arc::<[i64]>::new_zeroed_slice(len).assume_init() };
+        // SAFETY: `Self` is `repr(transparent)` over `[i64]`, so the pointer (with its length)
+        // points at a valid `Self` in the same allocation.
+        unsafe { Arc::from_raw(Arc::into_raw(words) as *const Self) }
+    }
+
+    fn from_words_box(words: Box<[i64]>) -> Box<Self> {
+        debug_assert!(words.len() == WIDE || words.len() == BLOCK_CELLS);
+        // SAFETY: as in `zeroed_words_arc`.
+        unsafe { Box::from_raw(Box::into_raw(words) as *mut Self) }
+    }
+
+    fn from_words_arc(words: Arc<[i64]>) -> Arc<Self> {
+        debug_assert!(words.len() == WIDE || words.len() == BLOCK_CELLS);
+        // SAFETY: as in `zeroed_words_arc`.
+        unsafe { Arc::from_raw(Arc::into_raw(words) as *const Self) }
+    }
+
+    /// Cell `i`'s first word and the layout (1 wide, 0 narrow): `i << 1` wide, `i` narrow.
+    #[inline(always)]
+    fn word_of(&self, i: usize) -> (usize, usize) {
+        assert!(i < BLOCK_CELLS, "cell {i} of a block of {BLOCK_CELLS}");
+        let wide = usize::from(self.is_wide());
+        (i << wide, wide)
+    }
+
+    #[inline(always)]
+    fn word(&self, at: usize) -> &i64 {
+        debug_assert!(at < self.data.len());
+        // SAFETY: `at` comes from `word_of` (i < BLOCK_CELLS), so it is below the length of
+        // either layout: `i` < BLOCK_CELLS narrow, `2i` < 2 · BLOCK_CELLS wide.
+        unsafe { self.data.get_unchecked(at) }
+    }
+
+    /// The words at `at` and `at + wide` (`at` from `word_of`): a wide cell's two sums, or a
+    /// narrow cell's `b` twice. Point and ray queries read cells here, without bounds checks.
+    #[inline(always)]
+    fn two_words(&self, at: usize, wide: usize) -> (i64, i64) {
+        debug_assert!(at + wide < self.data.len());
+        // SAFETY: as in `word`; wide, `2i + 1` < 2 · BLOCK_CELLS too.
+        unsafe { (*self.data.get_unchecked(at), *self.data.get_unchecked(at + wide)) }
+    }
+
+    /// A wide block's cells.
+    fn pairs(&self) -> &[Evidence; BLOCK_CELLS] {
+        assert!(self.is_wide());
+        // SAFETY: `Evidence` is two `i64` (`repr(C)`, alignment 8), and a wide block is
+        // `2 · BLOCK_CELLS` of them.
+        unsafe { &*self.data.as_ptr().cast::<[Evidence; BLOCK_CELLS]>() }
+    }
+
+    fn pairs_mut(&mut self) -> &mut [Evidence; BLOCK_CELLS] {
+        assert!(self.is_wide());
+        // SAFETY: as in `pairs`, and `self` is borrowed mutably.
+        unsafe { &mut *self.data.as_mut_ptr().cast::<[Evidence; BLOCK_CELLS]>() }
     }
 }
 
 impl BlockEvidence {
-    /// A block without evidence.
-    pub const ZERO: Self = Self { cells: [Evidence { a: 0, b: 0 }; BLOCK_CELLS] };
-
+    /// A narrow block without evidence.
     pub fn zeroed() -> Box<Self> {
-        Box::new(Self { cells: [Evidence::default(); BLOCK_CELLS] })
+        Self::from_words_box(vec![0; BLOCK_CELLS].into_boxed_slice())
     }
 
-    /// Cell `i` (local index, [`CellKey::index_in_block`]).
-    #[inline]
+    /// A wide block without evidence.
+    pub fn zeroed_wide() -> Box<Self> {
+        Self::from_words_box(vec![0; WIDE].into_boxed_slice())
+    }
+
+    /// A shared block without evidence, `wide` or narrow, allocated zeroed.
+    pub fn zeroed_arc(wide: bool) -> Arc<Self> {
+        Self::zeroed_words_arc(wide)
+    }
+
+    /// A copy of the block in the same layout.
+    pub fn to_box(&self) -> Box<Self> {
+        Self::from_words_box(self.data.into())
+    }
+
+    /// True when the block keeps both sums per cell (see the type's docs); false when every
+    /// `a` is zero and only the `b` are kept.
+    #[inline(always)]
+    pub fn is_wide(&self) -> bool {
+        self.data.len() == WIDE
+    }
+
+    /// Bytes the block's cells take (its layout's).
+    pub fn data_bytes(&self) -> usize {
+        std::mem::size_of_val(&self.data)
+    }
+
+    /// Cell `i` (local index, [`CellKey::index_in_block`]), without a branch on the layout.
+    #[inline(always)]
     pub fn get(&self, i: usize) -> Evidence {
-        *self.cell(i)
+        let (at, wide) = self.word_of(i);
+        // Wide: `a` at `2i`, `b` after it. Narrow: `b` at `i`, and `a` is zero (the word at `i`
+        // read and masked off).
+        let (a, b) = self.two_words(at, wide);
+        Evidence { a: a & -(wide as i64), b }
     }
 
-    /// A reference to cell `i`, e.g. to prefetch it.
-    #[inline]
-    pub fn cell(&self, i: usize) -> &Evidence {
-        &self.cells[i]
-    }
-
-    pub fn set(&mut self, i: usize, e: Evidence) {
-        self.cells[i] = e;
+    /// The first word of cell `i`, e.g. to prefetch it.
+    #[inline(always)]
+    pub fn cell(&self, i: usize) -> &i64 {
+        let (at, _) = self.word_of(i);
+        self.word(at)
     }
 
     /// Every cell, by local index.
-    pub fn cells(&self) -> &[Evidence; BLOCK_CELLS] {
-        &self.cells
+    pub fn cells(&self) -> impl Iterator<Item = Evidence> + '_ {
+        (0..BLOCK_CELLS).map(|i| self.get(i))
+    }
+
+    /// Sets cell `i`. A narrow block takes only `a` = 0 (widen it first: [`Self::widen_box`]).
+    pub fn set(&mut self, i: usize, e: Evidence) {
+        if self.is_wide() {
+            self.pairs_mut()[i] = e;
+        } else {
+            assert_eq!(e.a, 0, "hit mass set in a narrow block");
+            self.data[i] = e.b;
+        }
     }
 
     pub fn is_empty(&self) -> bool {
-        self.cells.iter().all(|e| e.is_empty())
+        self.data.iter().all(|&v| v == 0)
     }
 
     pub fn cells_with_evidence(&self) -> usize {
-        self.cells.iter().filter(|e| !e.is_empty()).count()
+        if self.is_wide() {
+            self.pairs().iter().filter(|e| !e.is_empty()).count()
+        } else {
+            self.data.iter().filter(|&&b| b != 0).count()
+        }
+    }
+
+    /// The same cells in the wide layout (a copy; a new allocation).
+    fn widened_words(&self) -> Vec<i64> {
+        if self.is_wide() {
+            return self.data.to_vec();
+        }
+        let mut w = vec![0; WIDE];
+        for (pair, &b) in w.chunks_exact_mut(2).zip(&self.data) {
+            pair[1] = b;
+        }
+        w
+    }
+
+    /// Makes `block` wide (in place if it is already).
+    pub fn widen_box(block: &mut Box<Self>) {
+        if !block.is_wide() {
+            *block = Self::from_words_box(block.widened_words().into_boxed_slice());
+        }
+    }
+
+    /// `block` narrow when every `a` is zero (a copy), else as it is.
+    pub fn narrowed(block: Box<Self>) -> Box<Self> {
+        if !block.is_wide() || block.pairs().iter().any(|e| e.a != 0) {
+            return block;
+        }
+        Self::from_words_box(block.pairs().iter().map(|e| e.b).collect())
+    }
+
+    /// The block, to change it: copied first if another holder (a snapshot) shares it, and
+    /// widened first if `wide` and it is narrow (the caller is about to add hit mass).
+    pub fn make_mut(block: &mut Arc<Self>, wide: bool) -> &mut Self {
+        if wide && !block.is_wide() {
+            *block = Self::from_words_arc(block.widened_words().into());
+        } else if Arc::get_mut(block).is_none() {
+            *block = Self::from_words_arc(block.data.into());
+        }
+        Arc::get_mut(block).expect("a block just copied has one holder")
     }
 
     /// `self += d` (`sign` ≥ 0) or `self -= d` (`sign` < 0) on the rows of `rows` (see
-    /// [`ScanDelta::rows`]): rows whose bit is clear must be zero in `d`.
+    /// [`ScanDelta::rows`]): rows whose bit is clear must be zero in `d`. A narrow block takes
+    /// only deltas without `a` rows ([`Self::make_mut`] widens it).
     pub fn add_delta(&mut self, d: &DeltaBlock, sign: i64, rows: RowMask) {
-        let add = |dst: &mut [Evidence], a: &[i64], b: &[i64]| {
+        fn add(dst: &mut [i64], src: &[i64], sign: i64) {
+            if sign >= 0 {
+                dst.iter_mut().zip(src).for_each(|(x, y)| *x += y);
+            } else {
+                dst.iter_mut().zip(src).for_each(|(x, y)| *x -= y);
+            }
+        }
+        if !self.is_wide() {
+            assert_eq!(rows[0], 0, "hit mass added to a narrow block");
+            let mut m = rows[1];
+            while m != 0 {
+                let r = m.trailing_zeros() as usize * ROW;
+                m &= m - 1;
+                add(&mut self.data[r..r + ROW], &d.b[r..r + ROW], sign);
+            }
+            return;
+        }
+        let add_pairs = |dst: &mut [Evidence], a: &[i64], b: &[i64]| {
             let cells = dst.iter_mut().zip(a.iter().zip(b));
             if sign >= 0 {
                 cells.for_each(|(e, (a, b))| {
@@ -139,45 +330,57 @@ impl BlockEvidence {
                 });
             }
         };
+        let cells = self.pairs_mut();
         if rows == ALL_ROWS {
-            return add(&mut self.cells, &d.a, &d.b);
+            return add_pairs(cells, &d.a, &d.b);
         }
         let mut m = rows[0] | rows[1];
         while m != 0 {
             let r = m.trailing_zeros() as usize * ROW;
             m &= m - 1;
-            add(&mut self.cells[r..r + ROW], &d.a[r..r + ROW], &d.b[r..r + ROW]);
+            add_pairs(&mut cells[r..r + ROW], &d.a[r..r + ROW], &d.b[r..r + ROW]);
         }
     }
 
     /// Adds the brick rows `a` (hit mass) and `b` (free mass) to the cells `at..at + N` and
-    /// zeroes them. Brick masses are never negative (sums of kernel values), so they are `u32`
-    /// and widen with zeros, which baseline x86-64 does in one instruction where sign
-    /// extension takes several.
+    /// zeroes them; `a` must be zero if the block is narrow. Brick masses are never negative
+    /// (sums of kernel values), so they are `u32` and widen with zeros, which baseline x86-64
+    /// does in one instruction where sign extension takes several.
     #[inline(always)]
     pub(crate) fn fold_row<const N: usize>(&mut self, at: usize, a: &mut [u32; N], b: &mut [u32; N]) {
-        let dst: &mut [Evidence; N] = (&mut self.cells[at..at + N]).try_into().expect("N cells");
-        for i in 0..N {
-            dst[i].a += i64::from(a[i]);
-            dst[i].b += i64::from(b[i]);
+        if self.is_wide() {
+            let dst: &mut [Evidence; N] = (&mut self.pairs_mut()[at..at + N]).try_into().expect("N cells");
+            for i in 0..N {
+                dst[i].a += i64::from(a[i]);
+                dst[i].b += i64::from(b[i]);
+            }
+        } else {
+            debug_assert!(a.iter().all(|&v| v == 0), "hit mass folded into a narrow block");
+            let dst: &mut [i64; N] = (&mut self.data[at..at + N]).try_into().expect("N cells");
+            for i in 0..N {
+                dst[i] += i64::from(b[i]);
+            }
         }
         (*a, *b) = ([0; N], [0; N]);
     }
 
-    /// `self += other` (`sign` ≥ 0) or `self -= other` (`sign` < 0).
+    /// `self += other` (`sign` ≥ 0) or `self -= other` (`sign` < 0). `self` must be wide if
+    /// `other` is.
     pub fn add_scaled(&mut self, other: &BlockEvidence, sign: i64) {
+        assert!(self.is_wide() || !other.is_wide(), "a wide block added into a narrow one");
         // Plain loops (no multiply) so the compiler vectorises them.
-        let pairs = self.cells.iter_mut().zip(&other.cells);
-        if sign >= 0 {
-            pairs.for_each(|(x, y)| {
-                x.a += y.a;
-                x.b += y.b;
-            });
+        fn add<'a>(pairs: impl Iterator<Item = (&'a mut i64, &'a i64)>, sign: i64) {
+            if sign >= 0 {
+                pairs.for_each(|(x, y)| *x += y);
+            } else {
+                pairs.for_each(|(x, y)| *x -= y);
+            }
+        }
+        if self.is_wide() == other.is_wide() {
+            add(self.data.iter_mut().zip(&other.data), sign);
         } else {
-            pairs.for_each(|(x, y)| {
-                x.a -= y.a;
-                x.b -= y.b;
-            });
+            // Wide += narrow: the `b` words.
+            add(self.data.iter_mut().skip(1).step_by(2).zip(&other.data), sign);
         }
     }
 }
@@ -522,6 +725,106 @@ mod tests {
             ]);
             prop_assert_eq!(delta_cells(&whole), delta_cells(&parts));
         }
+    }
+
+    /// A block with random evidence: `a` only in cells `i % hit_every == 0` (none if 0).
+    fn random_block(seed: u64, hit_every: usize) -> Box<BlockEvidence> {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        let mut b = BlockEvidence::zeroed_wide();
+        for i in 0..BLOCK_CELLS {
+            let a =
+                if hit_every > 0 && i % hit_every == 0 { rng.random_range(-1i64 << 40..1 << 40) } else { 0 };
+            if rng.random_bool(0.7) {
+                b.set(i, Evidence { a, b: rng.random_range(-1i64 << 40..1 << 40) });
+            }
+        }
+        b
+    }
+
+    /// Every cell of a block, read one by one.
+    fn cell_list(b: &BlockEvidence) -> Vec<Evidence> {
+        (0..BLOCK_CELLS).map(|i| b.get(i)).collect()
+    }
+
+    /// Narrow and wide blocks hold and add the same evidence: reads, equality, counts, every
+    /// sum and delta across the two layouts, widening (also of a block a snapshot shares) and
+    /// narrowing.
+    #[test]
+    fn narrow_and_wide_blocks_hold_and_add_alike() {
+        let free = random_block(1, 0);
+        assert!(free.is_wide(), "built wide");
+        let narrow = BlockEvidence::narrowed(free.to_box());
+        assert!(!narrow.is_wide() && narrow.data_bytes() * 2 == free.data_bytes());
+        assert_eq!(cell_list(&narrow), cell_list(&free));
+        assert_eq!(narrow.cells().collect::<Vec<_>>(), cell_list(&free));
+        assert!(*narrow == *free, "narrow equals wide");
+        assert!(*free == *narrow, "wide equals narrow");
+        assert_eq!(narrow.cells_with_evidence(), free.cells_with_evidence());
+        assert!(!narrow.is_empty() && BlockEvidence::zeroed().is_empty());
+        for i in [0, 7, 300, BLOCK_CELLS - 1] {
+            assert_eq!(*narrow.cell(i), free.get(i).b, "a narrow cell's first word is its b");
+            assert_eq!(*free.cell(i), free.get(i).a, "a wide cell's first word is its a");
+        }
+        let hits = random_block(2, 3);
+        assert!(BlockEvidence::narrowed(hits.to_box()).is_wide(), "a block with hits stays wide");
+        assert!(*narrow != *hits);
+        let other_free = BlockEvidence::narrowed(random_block(3, 0));
+        // Sums in every layout pair that may take them, against the cell-by-cell sums.
+        for (x, y) in [(&hits, &narrow), (&free, &other_free), (&narrow, &other_free), (&hits, &hits)] {
+            for sign in [1, -1] {
+                let want: Vec<Evidence> = cell_list(x)
+                    .iter()
+                    .zip(cell_list(y))
+                    .map(|(p, q)| Evidence { a: p.a + sign * q.a, b: p.b + sign * q.b })
+                    .collect();
+                let mut got = x.to_box();
+                got.add_scaled(y, sign);
+                assert_eq!(cell_list(&got), want, "sign {sign}");
+                assert_eq!(got.is_wide(), x.is_wide());
+            }
+        }
+        // A narrow block widened in an Arc that a snapshot shares: the snapshot keeps its bits.
+        let mut shared: Arc<BlockEvidence> = narrow.to_box().into();
+        let snapshot = Arc::clone(&shared);
+        BlockEvidence::make_mut(&mut shared, true).add_scaled(&hits, 1);
+        assert!(shared.is_wide() && !snapshot.is_wide() && *snapshot == *narrow);
+        let mut want = free.to_box();
+        want.add_scaled(&hits, 1);
+        assert!(*shared == *want);
+        // Without hits to come, a narrow block stays narrow (copied only because it is shared).
+        let mut shared: Arc<BlockEvidence> = narrow.to_box().into();
+        let snapshot = Arc::clone(&shared);
+        BlockEvidence::make_mut(&mut shared, false).add_scaled(&other_free, 1);
+        assert!(!shared.is_wide() && *snapshot == *narrow && *shared != *narrow);
+        // Deltas: b rows into a narrow block; a and b rows into a widened one.
+        let mut d = DeltaBlock::zeroed();
+        (d.b[9], d.b[500]) = (5, -7);
+        let rows = [0, 1 << (9 / ROW) | 1 << (500 / ROW)];
+        let mut n = narrow.to_box();
+        n.add_delta(&d, 1, rows);
+        let mut w = free.to_box();
+        w.add_delta(&d, 1, rows);
+        assert!(!n.is_wide() && *n == *w);
+        d.a[64] = 11;
+        let rows = [1 << (64 / ROW), rows[1]];
+        BlockEvidence::widen_box(&mut n);
+        n.add_delta(&d, -1, rows);
+        w.add_delta(&d, -1, rows);
+        assert!(n.is_wide() && *n == *w && n.get(64).a == -11);
+    }
+
+    /// A narrow block refuses hit mass rather than drop it.
+    #[test]
+    #[should_panic(expected = "hit mass set in a narrow block")]
+    fn a_narrow_block_refuses_hit_mass() {
+        BlockEvidence::zeroed().set(3, Evidence { a: 1, b: 0 });
+    }
+
+    #[test]
+    #[should_panic(expected = "a wide block added into a narrow one")]
+    fn a_narrow_block_refuses_a_wide_one() {
+        BlockEvidence::zeroed().add_scaled(&BlockEvidence::zeroed_wide(), 1);
     }
 
     /// Adding a training set straight into a map's blocks ([`Scatter::add_into`]) gives the bits

@@ -99,22 +99,19 @@ pub(crate) fn alpha_beta(e: Evidence, params: &MapParams) -> (f64, f64) {
     )
 }
 
-/// A fresh block without evidence, allocated zeroed: `Arc::new(BlockEvidence::ZERO)` built the
-/// 8 KiB block and then copied it into the heap (5% of sample-scan ingest in `perf`), where the
-/// allocator can hand out memory it knows is zero and skip both passes.
-#[allow(unsafe_code)]
-pub(crate) fn zeroed_block() -> Arc<BlockEvidence> {
-    // SAFETY: a block is an array of `Evidence`, two `i64`s each; all-zero bytes are a valid
-    // `i64` (0), so the zeroed memory is a valid block, and it equals `BlockEvidence::ZERO`
-    // (tested).
-    unsafe { Arc::<BlockEvidence>::new_zeroed().assume_init() }
+/// A fresh block without evidence, allocated zeroed (`calloc`): `Arc::new` of a zero block
+/// built it and then copied it into the heap (5% of sample-scan ingest in `perf`), where the
+/// allocator can hand out memory it knows is zero and skip both passes. `wide` when hit mass
+/// is about to be added (see [`BlockEvidence`]'s layouts).
+pub(crate) fn zeroed_block(wide: bool) -> Arc<BlockEvidence> {
+    BlockEvidence::zeroed_arc(wide)
 }
 
 /// A zero block shared by every caller on this thread (one per thread, so workers do not
 /// contend on its reference count): what a map entry holds while its block is taken out.
 fn placeholder_block() -> Arc<BlockEvidence> {
     thread_local! {
-        static ZERO: Arc<BlockEvidence> = zeroed_block();
+        static ZERO: Arc<BlockEvidence> = zeroed_block(false);
     }
     ZERO.with(Arc::clone)
 }
@@ -123,8 +120,10 @@ fn placeholder_block() -> Arc<BlockEvidence> {
 /// edit of it. The fast evidence path takes each block it adds to out, changes it (copying it
 /// first only if a snapshot shares it) and puts it back, so no per-scan delta is built.
 pub trait BlockSink {
-    /// Block `key` with its current content (zero if it has none), taken out to be changed.
-    fn take_block(&mut self, key: BlockKey) -> Arc<BlockEvidence>;
+    /// Block `key` with its current content (zero if it has none), taken out to be changed;
+    /// `wide` says a new block will receive hit mass (a hint: blocks the sink has are taken as
+    /// they are, and [`BlockEvidence::make_mut`] widens them).
+    fn take_block(&mut self, key: BlockKey, wide: bool) -> Arc<BlockEvidence>;
     /// Puts back a block taken with [`Self::take_block`] after adding evidence to it (so it
     /// holds some: the fast path takes a block only to add mass to it).
     fn put_block(&mut self, key: BlockKey, block: Arc<BlockEvidence>);
@@ -143,9 +142,9 @@ pub trait BlockSink {
                 add_whole(&mut mine, &mut block);
                 self.put_block(key, mine);
             }
-            // Not an emptiness test first: a map's blocks hold evidence, and reading all 8 KiB
-            // of one (a block another core has just written) was about a quarter of adding a
-            // worker's map in.
+            // Not an emptiness test first: a map's blocks hold evidence, and reading all of
+            // one (up to 8 KiB, a block another core has just written) was about a quarter of
+            // adding a worker's map in.
             None => self.put_block(key, block),
         }
     }
@@ -158,23 +157,27 @@ pub(crate) fn add_whole(mine: &mut Arc<BlockEvidence>, theirs: &mut Arc<BlockEvi
     if Arc::get_mut(mine).is_none() && Arc::get_mut(theirs).is_some() {
         std::mem::swap(mine, theirs);
     }
-    Arc::make_mut(mine).add_scaled(theirs, 1);
+    if theirs.is_wide() && !mine.is_wide() && Arc::get_mut(theirs).is_some() {
+        // The wide one takes the sum: no block is widened (copied) that need not be.
+        std::mem::swap(mine, theirs);
+    }
+    BlockEvidence::make_mut(mine, theirs.is_wide()).add_scaled(theirs, 1);
 }
 
 impl BlockSink for EvidenceMap {
-    fn take_block(&mut self, key: BlockKey) -> Arc<BlockEvidence> {
+    fn take_block(&mut self, key: BlockKey, wide: bool) -> Arc<BlockEvidence> {
         // `put_block` notes the change. The entry stays, holding a shared zero block until
         // `put_block` returns the block: a block that is only updated costs two lookups and no
         // change to the table's layout (removing and re-inserting moved another entry and its
         // slot each time).
         match self.blocks.get_mut(&key) {
             Some(s) => std::mem::replace(&mut s.block, placeholder_block()),
-            None => zeroed_block(),
+            None => zeroed_block(wide),
         }
     }
 
     fn put_block(&mut self, key: BlockKey, block: Arc<BlockEvidence>) {
-        // Not `insert_shared_block`: its emptiness test reads all 8 KiB of the block, and a
+        // Not `insert_shared_block`: its emptiness test reads the whole block (4 or 8 KiB), and a
         // block put back here holds evidence (2% of sample-scan ingest).
         debug_assert!(!block.is_empty(), "a block is put back without evidence");
         self.changes.note(key);
@@ -253,13 +256,14 @@ impl Slot {
     }
 
     fn zeroed() -> Self {
-        Self::new(zeroed_block())
+        Self::new(zeroed_block(false))
     }
 
-    /// The block, to change it (copied first if a snapshot shares it).
-    fn block_mut(&mut self) -> &mut BlockEvidence {
+    /// The block, to change it (copied first if a snapshot shares it, widened first if `wide`:
+    /// [`BlockEvidence::make_mut`]).
+    fn block_mut(&mut self, wide: bool) -> &mut BlockEvidence {
         self.summary.take();
-        Arc::make_mut(&mut self.block)
+        BlockEvidence::make_mut(&mut self.block, wide)
     }
 }
 
@@ -363,7 +367,7 @@ impl EvidenceMap {
     pub fn apply(&mut self, delta: &ScanDelta, sign: i64) {
         for (key, d, rows) in delta.iter() {
             self.changes.note(key);
-            let blk = self.blocks.get_or_insert_with(key, Slot::zeroed).block_mut();
+            let blk = self.blocks.get_or_insert_with(key, Slot::zeroed).block_mut(rows[0] != 0);
             blk.add_delta(d, sign, rows);
             if sign < 0 && blk.is_empty() {
                 self.blocks.remove(&key);
@@ -378,9 +382,12 @@ impl EvidenceMap {
             .iter()
             .map(|(key, d, rows)| {
                 let mut b = match self.blocks.get(&key) {
-                    Some(old) => Box::new((*old.block).clone()),
+                    Some(old) => old.block.to_box(),
                     None => BlockEvidence::zeroed(),
                 };
+                if rows[0] != 0 {
+                    BlockEvidence::widen_box(&mut b);
+                }
                 b.add_delta(d, sign, rows);
                 (key, (!b.is_empty()).then(|| Arc::from(b)))
             })
@@ -723,11 +730,58 @@ mod tests {
     fn zeroed_blocks_equal_the_zero_block() {
         // Dirty chunks of about a block's size first, so some blocks come from memory the
         // allocator reuses rather than from fresh pages.
-        let dirty: Vec<_> = (0..8).map(|_| vec![0xA5u8; std::mem::size_of::<BlockEvidence>() + 16]).collect();
-        drop(dirty);
-        for _ in 0..8 {
-            assert!(*zeroed_block() == BlockEvidence::ZERO);
+        for wide in [false, true] {
+            let bytes =
+                if wide { 16 * crate::core::key::BLOCK_CELLS } else { 8 * crate::core::key::BLOCK_CELLS };
+            let dirty: Vec<_> = (0..8).map(|_| vec![0xA5u8; bytes + 16]).collect();
+            drop(dirty);
+            for _ in 0..8 {
+                let b = zeroed_block(wide);
+                assert_eq!((b.is_wide(), b.data_bytes()), (wide, bytes));
+                assert!(b.is_empty() && b.cells().all(|e| e.is_empty()));
+            }
         }
+    }
+
+    /// Blocks no hit reaches are kept narrow (half the bytes), through both evidence paths and
+    /// a snapshot; the map answers the same either way.
+    #[test]
+    fn blocks_without_hit_mass_are_narrow() {
+        let params = MapParams::default();
+        let (pts, o) = wall_scan();
+        let mut map = EvidenceMap::new(params);
+        let mut integ = Integrator::new(params);
+        integ.integrate(&mut map, &pts, o, 1);
+        let no_hits = |b: &BlockEvidence| b.cells().all(|e| e.a == 0);
+        let count = |m: &EvidenceMap, f: &dyn Fn(&BlockEvidence) -> bool| {
+            m.blocks_unsorted().filter(|(_, b)| f(b)).count()
+        };
+        let (narrow, without_hits) = (count(&map, &|b| !b.is_wide()), count(&map, &no_hits));
+        // The free space between the sensor and the wall: most blocks. A block that only a
+        // hit window's margin reached may be wide with no hit mass (rounded to 0), not more.
+        assert!(narrow > map.block_count() / 2, "{narrow} narrow of {}", map.block_count());
+        assert!(narrow * 10 >= without_hits * 9, "{narrow} narrow of {without_hits} without hits");
+        // The same scan's delta applied (the general path) widens no block without hit mass,
+        // and gives the same cells.
+        let mut applied = EvidenceMap::new(params);
+        let delta = integ.scan_delta(&pts, o, 1);
+        applied.apply(&delta, 1);
+        assert!(applied.same_blocks_as(&map));
+        assert_eq!(count(&applied, &|b| !b.is_wide()), without_hits);
+        // Hits into narrow blocks a snapshot shares: widened copies, the snapshot untouched.
+        let snapshot = map.clone();
+        let before = snapshot.clone();
+        let closer: Vec<[f32; 3]> = pts.iter().map(|p| [1.5, p[1], p[2]]).collect();
+        integ.integrate(&mut map, &closer, o, 2);
+        assert!(snapshot.same_blocks_as(&before));
+        let mut want = before.clone();
+        want.apply(&integ.scan_delta(&closer, o, 1), 1);
+        assert!(map.same_blocks_as(&want));
+        let widened = snapshot
+            .blocks_unsorted()
+            .filter(|(k, b)| !b.is_wide() && map.block(**k).is_some_and(|m| m.is_wide()))
+            .count();
+        assert!(widened > 0, "the second wall lies in blocks the first scan left narrow");
     }
 
     #[test]
@@ -847,7 +901,7 @@ mod tests {
                 Box::new(|m| {
                     m.insert_block(
                         BlockKey::new(50, 0, 0),
-                        Box::new(m.block(m.block_keys_sorted()[0]).unwrap().clone()),
+                        m.block(m.block_keys_sorted()[0]).unwrap().to_box(),
                     )
                 }),
             ),

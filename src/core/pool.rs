@@ -345,10 +345,10 @@ mod tests {
                 assert_eq!(map.block_keys_sorted(), serial.block_keys_sorted(), "{n} workers");
                 for k in serial.block_keys_sorted() {
                     assert!(map.block(k) == serial.block(k), "{n} workers: block {k:?} differs");
-                    let mut doubled = serial.block(k).unwrap().clone();
+                    let mut doubled = serial.block(k).unwrap().to_box();
                     doubled.add_scaled(serial.block(k).unwrap(), 1);
                     assert!(
-                        twice.block(k) == Some(&doubled),
+                        twice.block(k) == Some(&*doubled),
                         "{n} workers, second time: block {k:?} differs"
                     );
                 }

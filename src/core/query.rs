@@ -173,7 +173,7 @@ pub fn query_box(
     let mut cubes: std::collections::BTreeMap<CellKey, Evidence> = std::collections::BTreeMap::new();
     for key in blocks_in_box(map, lo, hi) {
         let Some(block) = map.block(key) else { continue };
-        for (i, e) in block.cells().iter().enumerate() {
+        for (i, e) in block.cells().enumerate() {
             let (a, b) = (e.a, e.b);
             let cell = key.cell(i);
             let inside = (lo.x..=hi.x).contains(&cell.x)

@@ -435,8 +435,9 @@ trait FoldTarget {
     type Block<'a>: FoldBlock
     where
         Self: 'a;
-    /// The block at key `b`, taken or allocated on first use.
-    fn block(&mut self, b: [i32; 3]) -> Self::Block<'_>;
+    /// The block at key `b`, taken or allocated on first use; `hits` when the rows to come
+    /// may hold hit mass.
+    fn block(&mut self, b: [i32; 3], hits: bool) -> Self::Block<'_>;
 }
 
 /// One block of a [`FoldTarget`], open for adding rows.
@@ -465,7 +466,7 @@ impl FoldTarget for DeltaTarget<'_> {
         Self: 'a;
 
     #[inline(always)]
-    fn block(&mut self, b: [i32; 3]) -> DeltaRows<'_> {
+    fn block(&mut self, b: [i32; 3], _hits: bool) -> DeltaRows<'_> {
         let i = self.delta.block_index(b, self.spare) as usize;
         DeltaRows { block: &mut self.delta.blocks[i].1, rows: &mut self.delta.rows[i] }
     }
@@ -501,15 +502,16 @@ impl<S: BlockSink + ?Sized> FoldTarget for SinkTarget<'_, S> {
         Self: 'a;
 
     #[inline(always)]
-    fn block(&mut self, b: [i32; 3]) -> &mut BlockEvidence {
+    fn block(&mut self, b: [i32; 3], hits: bool) -> &mut BlockEvidence {
         let s = self.slots.index(b);
         if self.slots.slots[s] == NO_SLOT {
             self.slots.slots[s] = self.taken.len() as u32;
             let key = BlockKey::new(b[0], b[1], b[2]);
-            self.taken.push((key, self.sink.take_block(key)));
+            self.taken.push((key, self.sink.take_block(key, hits)));
         }
-        // Copies the block first only if a snapshot shares it.
-        Arc::make_mut(&mut self.taken[self.slots.slots[s] as usize].1)
+        // Copies the block first only if a snapshot shares it, widens it if hit mass comes to
+        // a narrow one.
+        BlockEvidence::make_mut(&mut self.taken[self.slots.slots[s] as usize].1, hits)
     }
 }
 
@@ -564,6 +566,7 @@ fn fold_brick_with<const M: usize, const E: usize>(
         _ => (M + SB, 0, M),
     };
     let touched = brick.touched[0] | brick.touched[1];
+    let hit_touched = brick.touched[0];
     let (cells_a, cells_b) = (&mut brick.a[..], &mut brick.b[..]);
     for rz in 0..R {
         for ry in 0..R {
@@ -608,7 +611,11 @@ fn fold_brick_with<const M: usize, const E: usize>(
                     }
                 }
             }
-            let key = |rx: usize| [0, 1, 2].map(|i| block[i] + [rx, ry, rz][i] as i32 - 1);
+            // Per x region, its block's key and whether a hit window touched the region (else
+            // its `a` cells are zero, and the block may stay narrow).
+            let hits = hit_touched >> (R * (ry + R * rz));
+            let key =
+                |rx: usize| ([0, 1, 2].map(|i| block[i] + [rx, ry, rz][i] as i32 - 1), hits >> rx & 1 != 0);
             let rows_of = (y, z, at);
             fold_rows::<M>(cells_a, cells_b, rows[0], (0, b - M), rows_of, key(0), target);
             for rx in 1..=S {
@@ -631,13 +638,13 @@ fn fold_rows<const N: usize>(
     mut rows: u64,
     x: (usize, usize),
     (y, z, at): ((usize, usize, usize), (usize, usize, usize), impl Fn(usize, usize) -> usize),
-    key: [i32; 3],
+    (key, hits): ([i32; 3], bool),
     target: &mut impl FoldTarget,
 ) {
     if rows == 0 {
         return;
     }
-    let mut dst = target.block(key);
+    let mut dst = target.block(key, hits);
     while rows != 0 {
         let r = rows.trailing_zeros() as usize;
         rows &= rows - 1;

@@ -11,7 +11,7 @@ pub fn encode_block(block: &BlockEvidence, out: &mut Vec<u8>) {
     out.push(ENCODING);
     let start = out.len();
     out.resize(start + BITMAP_BYTES, 0);
-    for (i, &Evidence { a, b }) in block.cells().iter().enumerate() {
+    for (i, Evidence { a, b }) in block.cells().enumerate() {
         if a != 0 || b != 0 {
             out[start + i / 8] |= 1 << (i % 8);
             put_varint(out, zigzag(a));
@@ -30,7 +30,7 @@ pub fn decode_block(data: &[u8]) -> Result<Box<BlockEvidence>, String> {
         return Err("block data shorter than its bitmap".into());
     }
     let (bitmap, mut payload) = rest.split_at(BITMAP_BYTES);
-    let mut block = BlockEvidence::zeroed();
+    let mut block = BlockEvidence::zeroed_wide();
     for i in 0..BLOCK_CELLS {
         if bitmap[i / 8] & (1 << (i % 8)) != 0 {
             let e =
@@ -44,7 +44,8 @@ pub fn decode_block(data: &[u8]) -> Result<Box<BlockEvidence>, String> {
     if !payload.is_empty() {
         return Err(format!("{} trailing bytes after the last cell", payload.len()));
     }
-    Ok(block)
+    // Narrow when no cell has hit mass: the layout a map would have built (see `BlockEvidence`).
+    Ok(BlockEvidence::narrowed(block))
 }
 
 fn zigzag(v: i64) -> u64 {

@@ -17,7 +17,7 @@ pub(super) fn cells(map: &EvidenceMap) -> Vec<(BlockKey, Vec<(i64, i64)>)> {
         .into_iter()
         .map(|k| {
             let b = map.block(k).unwrap();
-            (k, b.cells().iter().map(|e| (e.a, e.b)).collect())
+            (k, b.cells().map(|e| (e.a, e.b)).collect())
         })
         .collect()
 }
@@ -51,12 +51,24 @@ fn the_schema_in_the_file_is_the_documented_one() {
 
 #[test]
 fn codec_round_trip_extremes_and_rejects_garbage() {
-    let mut b = BlockEvidence::zeroed();
+    let mut b = BlockEvidence::zeroed_wide();
     b.set(0, Evidence { a: i64::MAX, b: i64::MIN });
     b.set(511, Evidence { a: -1, b: 0 });
     let mut buf = Vec::new();
     encode_block(&b, &mut buf);
     assert_eq!(*decode_block(&buf).unwrap(), *b);
+    assert!(decode_block(&buf).unwrap().is_wide(), "a block with hit mass loads wide");
+    // A block without hit mass loads narrow, with the bytes of the same cells written wide.
+    let mut free = BlockEvidence::zeroed_wide();
+    free.set(7, Evidence { a: 0, b: -3 });
+    let mut narrow = BlockEvidence::zeroed();
+    narrow.set(7, Evidence { a: 0, b: -3 });
+    let (mut wide_bytes, mut narrow_bytes) = (Vec::new(), Vec::new());
+    encode_block(&free, &mut wide_bytes);
+    encode_block(&narrow, &mut narrow_bytes);
+    assert_eq!(wide_bytes, narrow_bytes, "the encoding does not depend on the layout");
+    let loaded = decode_block(&wide_bytes).unwrap();
+    assert!(!loaded.is_wide() && *loaded == *free);
     assert!(decode_block(&buf[..buf.len() - 1]).unwrap_err().contains("truncated"));
     let mut extra = buf.clone();
     extra.push(0);
