@@ -1,5 +1,6 @@
-//! The map file format is a public API: `tests/fixtures/format-v2.bgkmap` was written by this
-//! format version and must keep opening with the same content. It holds every journal state:
+//! The map file format is a public API: `tests/fixtures/format-v2.bgkmap` and `format-v3.bgkmap`
+//! were written by those format versions and must keep opening with the same content (a version
+//! 2 file is upgraded to 3 when opened for writing). Each holds every journal state:
 //! `(a, 1)` applied, `(a, 2)` retracted, `(b, 1)` applied with its raw scan pruned, `(b, 2)`
 //! journaled but not applied (a crash before integration), so its evidence comes from replay.
 //!
@@ -10,14 +11,17 @@
 use bgkmap::core::{EvidenceMap, Integrator, MapParams, PointFrame, Pose, RawScan};
 use bgkmap::store::record::fingerprint;
 use bgkmap::store::{
-    Commit, DurableMap, FORMAT_VERSION, MapFile, NewScan, Pending, Retention, SCHEMA, ScanStatus, check,
-    load_map, load_params,
+    Commit, DurableMap, FORMAT_VERSION, MapFile, NewScan, OLDEST_FORMAT_VERSION, Pending, Retention, SCHEMA,
+    ScanStatus, check, load_map, load_params,
 };
 use std::path::{Path, PathBuf};
 
-const FIXTURE: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/fixtures/format-v2.bgkmap");
+/// The fixture of format `version`.
+fn fixture(version: i64) -> PathBuf {
+    PathBuf::from(format!("{}/tests/fixtures/format-v{version}.bgkmap", env!("CARGO_MANIFEST_DIR")))
+}
 
-/// The fixture's parameters. It predates `sub_cells`, so it reads back with `sub_cells = 0`
+/// The fixtures' parameters. Version 2's predates `sub_cells`, so it reads back with `sub_cells = 0`
 /// (training points where they are), which is what built its evidence.
 fn params() -> MapParams {
     MapParams { max_range_m: 5.0, ell_m: 0.25, sub_cells: 0, ..MapParams::default() }
@@ -49,24 +53,49 @@ fn new(s: &(&str, u64, RawScan), stamp: i64) -> NewScan {
     NewScan { source: s.0.into(), seq: s.1, stamp_nanos: stamp, received_nanos: stamp, scan: s.2.clone() }
 }
 
-fn copy_of_fixture(dir: &Path) -> PathBuf {
+fn copy_of_fixture(dir: &Path, version: i64) -> PathBuf {
     let p = dir.join("fixture.bgkmap");
-    std::fs::copy(FIXTURE, &p).unwrap();
+    std::fs::copy(fixture(version), &p).unwrap();
     p
 }
 
+/// `application_id`, `user_version` and `meta.format_version` of the file at `path`.
+fn header(path: &Path) -> (i64, i64, String) {
+    let c = rusqlite::Connection::open(path).unwrap();
+    c.query_row(
+        "SELECT *, (SELECT value FROM meta WHERE key = 'format_version') FROM pragma_application_id, pragma_user_version",
+        [],
+        |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)),
+    )
+    .unwrap()
+}
+
 #[test]
-fn the_version_2_fixture_opens_with_its_content() {
+fn the_version_2_fixture_opens_with_its_content_and_is_upgraded_for_writing() {
+    assert_eq!((OLDEST_FORMAT_VERSION, FORMAT_VERSION), (2, 3));
+    fixture_opens_with_its_content(2);
+}
+
+#[test]
+fn the_version_3_fixture_opens_with_its_content() {
+    fixture_opens_with_its_content(3);
+    // Both block encodings: blocks with hit mass (1) and free space (2).
+    let c = rusqlite::Connection::open(fixture(3)).unwrap();
+    let encodings: Vec<i64> = c
+        .prepare("SELECT DISTINCT unicode(CAST(substr(data, 1, 1) AS TEXT)) FROM blocks ORDER BY 1")
+        .unwrap()
+        .query_map([], |r| r.get(0))
+        .unwrap()
+        .map(Result::unwrap)
+        .collect();
+    assert_eq!(encodings, [1, 2]);
+}
+
+fn fixture_opens_with_its_content(version: i64) {
     let tmp = tempfile::tempdir().unwrap();
-    let path = copy_of_fixture(tmp.path());
+    let path = copy_of_fixture(tmp.path(), version);
     let c = rusqlite::Connection::open(&path).unwrap();
-    let header: (i64, i64) = c
-        .query_row("SELECT * FROM pragma_application_id, pragma_user_version", [], |r| {
-            Ok((r.get(0)?, r.get(1)?))
-        })
-        .unwrap();
-    assert_eq!(header, (0x4247_4B4D, 2));
-    assert_eq!(FORMAT_VERSION, 2);
+    assert_eq!(header(&path), (0x4247_4B4D, version, version.to_string()));
     let mut stmt = c.prepare("SELECT sql FROM sqlite_master WHERE type = 'table' ORDER BY rowid").unwrap();
     let sqls: Vec<String> = stmt.query_map([], |r| r.get(0)).unwrap().map(Result::unwrap).collect();
     assert_eq!(sqls, SCHEMA);
@@ -101,7 +130,13 @@ fn the_version_2_fixture_opens_with_its_content() {
     }
     let report = check::check_map(&path).unwrap();
     assert!(report.is_ok(), "{report:?}");
+    assert_eq!(header(&path).1, version, "reading changes no file");
     let dm = DurableMap::open_recovered(&path).unwrap();
+    assert_eq!(
+        header(&path),
+        (0x4247_4B4D, FORMAT_VERSION, FORMAT_VERSION.to_string()),
+        "opened for writing"
+    );
     let j = dm.journal();
     let status = |s: &str, q| j.get(s, q).unwrap().status;
     assert_eq!(
@@ -121,7 +156,7 @@ fn write_fixture() {
     if std::env::var_os("BGKMAP_WRITE_FIXTURE").is_none() {
         return;
     }
-    let path = PathBuf::from(FIXTURE);
+    let path = fixture(FORMAT_VERSION);
     let _ = std::fs::remove_file(&path);
     MapFile::create(&path, &params()).unwrap().close().unwrap();
     let [a1, a2, b1, b2] = scans();

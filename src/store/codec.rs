@@ -1,40 +1,47 @@
-//! Block evidence ⇄ bytes (encoding 1, documented in the parent module).
+//! Block evidence ⇄ bytes (encodings 1 and 2, documented in the parent module).
 
 use crate::core::evidence::{BlockEvidence, Evidence};
 use crate::core::key::BLOCK_CELLS;
 
-const ENCODING: u8 = 1;
+/// Both sums per present cell.
+const ENCODING_BOTH: u8 = 1;
+/// `B` alone per present cell: every `A` of the block is 0.
+const ENCODING_FREE: u8 = 2;
 const BITMAP_BYTES: usize = BLOCK_CELLS / 8;
 
-/// Appends the encoding of `block` to `out`.
+/// Appends the encoding of `block` to `out`: `2` when no cell has hit mass, else `1` (the bytes
+/// depend on the cells alone, not on the block's layout).
 pub fn encode_block(block: &BlockEvidence, out: &mut Vec<u8>) {
-    out.push(ENCODING);
+    let free_only = !block.is_wide() || block.cells().all(|e| e.a == 0);
+    out.push(if free_only { ENCODING_FREE } else { ENCODING_BOTH });
     let start = out.len();
     out.resize(start + BITMAP_BYTES, 0);
     for (i, Evidence { a, b }) in block.cells().enumerate() {
         if a != 0 || b != 0 {
             out[start + i / 8] |= 1 << (i % 8);
-            put_varint(out, zigzag(a));
+            if !free_only {
+                put_varint(out, zigzag(a));
+            }
             put_varint(out, zigzag(b));
         }
     }
 }
 
-/// Decodes a block; the error says what is wrong.
+/// Decodes a block (narrow whenever no cell has hit mass); the error says what is wrong.
 pub fn decode_block(data: &[u8]) -> Result<Box<BlockEvidence>, String> {
     let (&enc, rest) = data.split_first().ok_or("empty block data")?;
-    if enc != ENCODING {
+    if enc != ENCODING_BOTH && enc != ENCODING_FREE {
         return Err(format!("unknown block encoding {enc}"));
     }
     if rest.len() < BITMAP_BYTES {
         return Err("block data shorter than its bitmap".into());
     }
     let (bitmap, mut payload) = rest.split_at(BITMAP_BYTES);
-    let mut block = BlockEvidence::zeroed_wide();
+    let mut block = if enc == ENCODING_FREE { BlockEvidence::zeroed() } else { BlockEvidence::zeroed_wide() };
     for i in 0..BLOCK_CELLS {
         if bitmap[i / 8] & (1 << (i % 8)) != 0 {
-            let e =
-                Evidence { a: unzigzag(get_varint(&mut payload)?), b: unzigzag(get_varint(&mut payload)?) };
+            let a = if enc == ENCODING_FREE { 0 } else { unzigzag(get_varint(&mut payload)?) };
+            let e = Evidence { a, b: unzigzag(get_varint(&mut payload)?) };
             block.set(i, e);
             if e.is_empty() {
                 return Err(format!("cell {i} is marked present but holds no evidence"));

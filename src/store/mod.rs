@@ -5,10 +5,14 @@
 //! This module must not depend on anything above the core (no service, no network); it uses the
 //! core to recompute a scan's evidence from its journal record.
 //!
-//! # Format version 2
+//! # Format version 3
 //!
-//! (Version 1, without the journal, was never released; files of version 1 are refused like any
-//! other version.)
+//! Version 3 is version 2 plus block encoding `2` (below), for blocks without hit mass. This
+//! build reads both. A version 2 file opened for writing is upgraded in place first (its
+//! `user_version` and `meta.format_version` set to 3 in one transaction; its blocks stay as they
+//! are, since encoding `1` is valid in version 3), so a file that may hold encoding `2` never
+//! claims version 2. (Version 1, without the journal, was never released; files of version 1
+//! are refused like any other version.)
 //!
 //! SQLite header fields:
 //! - `PRAGMA application_id` = `0x42474B4D` (ASCII "BGKM"): identifies a bgkmap map file.
@@ -30,7 +34,7 @@
 //! CREATE TABLE scan_records (id INTEGER PRIMARY KEY, record BLOB NOT NULL);
 //! ```
 //!
-//! - `meta`: `format` = `bgkmap`, `format_version` = `2`, `block_edge` = `8` (cells per block
+//! - `meta`: `format` = `bgkmap`, `format_version` = `3`, `block_edge` = `8` (cells per block
 //!   edge), `fixed_shift` = `24` (fractional bits of the evidence sums), `writer` = the crate
 //!   version that created the file, `version` = the map version (decimal): +1 for every scan
 //!   integrated and for every retraction, re-posing or merge; it never decreases.
@@ -55,14 +59,15 @@
 //!
 //! | offset | size | content |
 //! |---|---|---|
-//! | 0 | 1 | encoding, `1` |
+//! | 0 | 1 | encoding, `1` or `2` |
 //! | 1 | 64 | presence bitmap: bit `i` (byte `i / 8`, LSB first) set ⇔ cell `i` holds evidence |
-//! | 65 | … | for each present cell in increasing `i`: `A` then `B` as zigzag LEB128 varints |
+//! | 65 | … | for each present cell in increasing `i`: encoding `1`: `A` then `B` as zigzag LEB128 varints; encoding `2`: `B` alone (`A = 0`) |
 //!
 //! Cell `i` within a block is local `(x, y, z)` with `i = x + 8·y + 64·z`. `A` and `B` are the
 //! occupied and free unit-kernel evidence sums in fixed point (`value / 2^24`). A cell holds
 //! evidence when `A ≠ 0` or `B ≠ 0`; absent cells have `A = B = 0`. The encoding must consume the
-//! blob exactly.
+//! blob exactly. Writers use encoding `2` exactly when every `A` of the block is 0 (free space:
+//! half the blocks of an outdoor drive), so the bytes of a block are a function of its cells.
 //!
 //! Scan `record`, byte by byte (little-endian):
 //!
@@ -124,8 +129,11 @@ pub use ops::{OpError, ScanSelector};
 pub use reader::{CorruptBlock, MapReader};
 pub use schema::SCHEMA;
 
-/// The format version this build reads and writes.
-pub const FORMAT_VERSION: i64 = 2;
+/// The format version this build writes (and reads).
+pub const FORMAT_VERSION: i64 = 3;
+/// The oldest format version this build reads; such a file opened for writing is upgraded to
+/// [`FORMAT_VERSION`] first (see the format's docs).
+pub const OLDEST_FORMAT_VERSION: i64 = 2;
 /// `PRAGMA application_id` of a bgkmap map file ("BGKM").
 pub const APPLICATION_ID: i64 = 0x4247_4B4D;
 
@@ -135,7 +143,7 @@ pub enum StoreError {
     #[error("{path}: not a bgkmap map file ({reason})")]
     NotAMap { path: PathBuf, reason: String },
     #[error(
-        "{path}: map file format version {found} is not supported (this build reads version {FORMAT_VERSION}){hint}"
+        "{path}: map file format version {found} is not supported (this build reads versions {OLDEST_FORMAT_VERSION} to {FORMAT_VERSION}){hint}"
     )]
     Version { path: PathBuf, found: i64, hint: &'static str },
     #[error("{path}: block ({x}, {y}, {z}) is corrupt: {reason}")]

@@ -1,13 +1,13 @@
 //! The tables and header of a map file: creating them, and checking them on open.
 
-use super::{APPLICATION_ID, FORMAT_VERSION, StoreError, sql};
+use super::{APPLICATION_ID, FORMAT_VERSION, OLDEST_FORMAT_VERSION, StoreError, sql};
 use crate::core::MapParams;
 use crate::core::kernel::FIXED_SHIFT;
 use crate::core::key::BLOCK_EDGE;
 use rusqlite::{Connection, OpenFlags, OptionalExtension, params};
 use std::path::Path;
 
-/// The `CREATE` statements of format version 2, exactly as stored in `sqlite_master.sql`.
+/// The `CREATE` statements of format versions 2 and 3, exactly as stored in `sqlite_master.sql`.
 pub const SCHEMA: [&str; 5] = [
     "CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL) WITHOUT ROWID",
     "CREATE TABLE params (name TEXT PRIMARY KEY, value TEXT NOT NULL) WITHOUT ROWID",
@@ -64,7 +64,8 @@ pub(super) fn create_schema(
     tx.commit().map_err(&e)
 }
 
-/// Opens `path` with `flags` and checks it is a bgkmap file of this version.
+/// Opens `path` with `flags` and checks it is a bgkmap file of a version this build reads; a
+/// writable open upgrades an older version first (see the format's docs).
 pub(super) fn open_with(path: &Path, flags: OpenFlags) -> Result<Connection, StoreError> {
     if !path.is_file() {
         let error = std::io::Error::new(std::io::ErrorKind::NotFound, "no such map file");
@@ -80,13 +81,22 @@ pub(super) fn open_with(path: &Path, flags: OpenFlags) -> Result<Connection, Sto
         return Err(not_a_map(format!("application_id is {app:#x}, expected {APPLICATION_ID:#x}")));
     }
     let version: i64 = conn.query_row("PRAGMA user_version", [], |r| r.get(0)).map_err(sql(path))?;
-    if version != FORMAT_VERSION {
+    if !(OLDEST_FORMAT_VERSION..=FORMAT_VERSION).contains(&version) {
         let hint = if version > FORMAT_VERSION { "; it was written by a newer bgkmap: upgrade" } else { "" };
         return Err(StoreError::Version { path: path.to_path_buf(), found: version, hint });
     }
     let edge = meta_value(&conn, path, "block_edge")?;
     if edge.as_deref() != Some(&BLOCK_EDGE.to_string()) {
         return Err(not_a_map(format!("meta block_edge is {edge:?}, expected {BLOCK_EDGE}")));
+    }
+    if version < FORMAT_VERSION && flags.contains(OpenFlags::SQLITE_OPEN_READ_WRITE) {
+        // Before anything can write a block encoding the old version lacks. The header and
+        // `meta` change together or not at all.
+        conn.execute_batch(&format!(
+            "BEGIN IMMEDIATE; PRAGMA user_version = {FORMAT_VERSION};
+             UPDATE meta SET value = '{FORMAT_VERSION}' WHERE key = 'format_version'; COMMIT;"
+        ))
+        .map_err(sql(path))?;
     }
     Ok(conn)
 }

@@ -67,13 +67,21 @@ fn codec_round_trip_extremes_and_rejects_garbage() {
     encode_block(&free, &mut wide_bytes);
     encode_block(&narrow, &mut narrow_bytes);
     assert_eq!(wide_bytes, narrow_bytes, "the encoding does not depend on the layout");
+    assert_eq!((wide_bytes[0], buf[0]), (2, 1), "encoding 2 without hit mass, 1 with");
+    assert_eq!(wide_bytes.len(), 1 + 64 + 1, "encoding 2 keeps B alone");
+    // The same cell in encoding 1 (as version 2 files hold it) reads the same.
+    let mut both = wide_bytes.clone();
+    both[0] = 1;
+    both.insert(65, 0);
+    assert!(*decode_block(&both).unwrap() == *free);
+    assert!(decode_block(&wide_bytes[..65]).unwrap_err().contains("truncated"));
     let loaded = decode_block(&wide_bytes).unwrap();
     assert!(!loaded.is_wide() && *loaded == *free);
     assert!(decode_block(&buf[..buf.len() - 1]).unwrap_err().contains("truncated"));
     let mut extra = buf.clone();
     extra.push(0);
     assert!(decode_block(&extra).unwrap_err().contains("trailing"));
-    assert!(decode_block(&[2]).unwrap_err().contains("encoding"));
+    assert!(decode_block(&[3]).unwrap_err().contains("encoding"));
     assert!(decode_block(&[]).is_err());
 }
 
@@ -86,6 +94,23 @@ fn other_versions_and_non_map_files_are_clear_errors() {
     let err = load_map(&path).unwrap_err().to_string();
     assert!(err.contains("format version 99") && err.contains("m.bgkmap") && err.contains("newer"), "{err}");
     assert!(MapFile::open(&path).is_err(), "writers refuse it too");
+    // Version 2 (the oldest this build reads): read as it is; upgraded when opened for writing.
+    let v2 = "PRAGMA user_version = 2; UPDATE meta SET value = '2' WHERE key = 'format_version'";
+    Connection::open(&path).unwrap().execute_batch(v2).unwrap();
+    let versions = || -> (i64, String) {
+        Connection::open(&path)
+            .unwrap()
+            .query_row(
+                "SELECT user_version, (SELECT value FROM meta WHERE key = 'format_version') FROM pragma_user_version",
+                [],
+                |r| Ok((r.get(0)?, r.get(1)?)),
+            )
+            .unwrap()
+    };
+    assert!(load_map(&path).unwrap().same_blocks_as(&small_map()));
+    assert_eq!(versions(), (2, "2".to_string()), "reading leaves it at version 2");
+    MapFile::open(&path).unwrap();
+    assert_eq!(versions(), (3, "3".to_string()), "a writer upgrades it first");
     Connection::open(&path).unwrap().execute_batch("PRAGMA user_version = 1").unwrap();
     let err = load_map(&path).unwrap_err().to_string();
     assert!(err.contains("format version 1 is not supported") && !err.contains("newer"), "{err}");
