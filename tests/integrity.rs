@@ -56,8 +56,18 @@ fn flip_block_byte(path: &Path) -> [i32; 3] {
     c.execute_batch("PRAGMA wal_checkpoint(TRUNCATE)").unwrap();
     drop(c);
     let mut bytes = std::fs::read(path).unwrap();
-    let at = bytes.windows(data.len()).position(|w| w == data.as_slice()).expect("block bytes in the file");
-    bytes[at + data.len() / 2] ^= 0x40;
+    // Every copy of the block's bytes: SQLite leaves old copies of rows in pages it has freed
+    // (a B-tree page split moves them), and which copy comes first in the file is chance.
+    let copies: Vec<usize> = bytes
+        .windows(data.len())
+        .enumerate()
+        .filter(|(_, w)| *w == data.as_slice())
+        .map(|(at, _)| at)
+        .collect();
+    assert!(!copies.is_empty(), "block bytes in the file");
+    for at in copies {
+        bytes[at + data.len() / 2] ^= 0x40;
+    }
     std::fs::write(path, bytes).unwrap();
     [x, y, z]
 }
