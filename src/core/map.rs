@@ -255,8 +255,9 @@ impl Slot {
         Self { block, summary: OnceLock::new() }
     }
 
-    fn zeroed() -> Self {
-        Self::new(zeroed_block(false))
+    /// A slot with a zero block (`wide` or narrow).
+    fn zeroed(wide: bool) -> Self {
+        Self::new(zeroed_block(wide))
     }
 
     /// The block, to change it (copied first if a snapshot shares it, widened first if `wide`:
@@ -367,7 +368,8 @@ impl EvidenceMap {
     pub fn apply(&mut self, delta: &ScanDelta, sign: i64) {
         for (key, d, rows) in delta.iter() {
             self.changes.note(key);
-            let blk = self.blocks.get_or_insert_with(key, Slot::zeroed).block_mut(rows[0] != 0);
+            let wide = rows[0] != 0;
+            let blk = self.blocks.get_or_insert_with(key, || Slot::zeroed(wide)).block_mut(wide);
             blk.add_delta(d, sign, rows);
             if sign < 0 && blk.is_empty() {
                 self.blocks.remove(&key);
@@ -727,7 +729,7 @@ mod tests {
     }
 
     #[test]
-    fn zeroed_blocks_equal_the_zero_block() {
+    fn zeroed_blocks_are_empty_in_either_layout() {
         // Dirty chunks of about a block's size first, so some blocks come from memory the
         // allocator reuses rather than from fresh pages.
         for wide in [false, true] {
