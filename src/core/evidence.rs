@@ -286,10 +286,22 @@ impl BlockEvidence {
 
     /// The block, to change it: copied first if another holder (a snapshot) shares it, and
     /// widened first if `wide` and it is narrow (the caller is about to add hit mass).
+    ///
+    /// One atomic read-modify-write when the block is already the caller's alone (the fold
+    /// calls this once per block region of every brick): asking `Arc::get_mut` a second time
+    /// after a first test made `make_mut` 4.8% of sample-scan ingest in `perf`; asking once,
+    /// 2.7% (`Arc::make_mut` was 2.6% before blocks had two layouts).
+    #[allow(unsafe_code)]
     pub fn make_mut(block: &mut Arc<Self>, wide: bool) -> &mut Self {
         if wide && !block.is_wide() {
             *block = Self::from_words_arc(block.widened_words().into());
-        } else if Arc::get_mut(block).is_none() {
+        } else if let Some(unique) = Arc::get_mut(block).map(|b| b as *mut Self) {
+            // SAFETY: `unique` is the block `Arc::get_mut` just lent out of `block`, returned
+            // with `block`'s own mutable borrow, so nothing else can reach it while it lives.
+            // (Returning `Arc::get_mut`'s reference itself on this branch is refused only
+            // because `block` is replaced on the other: NLL's "problem case 3".)
+            return unsafe { &mut *unique };
+        } else {
             *block = Self::from_words_arc(block.data.into());
         }
         Arc::get_mut(block).expect("a block just copied has one holder")
