@@ -5,7 +5,7 @@
 
 use super::evidence::{BlockEvidence, ScanDelta};
 use super::key::BlockKey;
-use super::map::{BlockSink, EvidenceMap, zeroed_block};
+use super::map::{BlockSink, EvidenceMap};
 use rustc_hash::FxHashMap;
 use std::sync::Arc;
 
@@ -93,7 +93,7 @@ impl BlockSink for MapEdit<'_> {
 
 /// `map`'s block `key` (shared until written), or a zero block (`wide` or narrow).
 fn shared_or_zero(map: &EvidenceMap, key: BlockKey, wide: bool) -> Arc<BlockEvidence> {
-    map.block_arc(key).unwrap_or_else(|| zeroed_block(wide))
+    map.block_arc(key).unwrap_or_else(|| BlockEvidence::zeroed_arc(wide))
 }
 
 impl EvidenceMap {

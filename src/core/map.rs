@@ -99,19 +99,11 @@ pub(crate) fn alpha_beta(e: Evidence, params: &MapParams) -> (f64, f64) {
     )
 }
 
-/// A fresh block without evidence, allocated zeroed (`calloc`): `Arc::new` of a zero block
-/// built it and then copied it into the heap (5% of sample-scan ingest in `perf`), where the
-/// allocator can hand out memory it knows is zero and skip both passes. `wide` when hit mass
-/// is about to be added (see [`BlockEvidence`]'s layouts).
-pub(crate) fn zeroed_block(wide: bool) -> Arc<BlockEvidence> {
-    BlockEvidence::zeroed_arc(wide)
-}
-
 /// A zero block shared by every caller on this thread (one per thread, so workers do not
 /// contend on its reference count): what a map entry holds while its block is taken out.
 fn placeholder_block() -> Arc<BlockEvidence> {
     thread_local! {
-        static ZERO: Arc<BlockEvidence> = zeroed_block(false);
+        static ZERO: Arc<BlockEvidence> = BlockEvidence::zeroed_arc(false);
     }
     ZERO.with(Arc::clone)
 }
@@ -172,7 +164,7 @@ impl BlockSink for EvidenceMap {
         // slot each time).
         match self.blocks.get_mut(&key) {
             Some(s) => std::mem::replace(&mut s.block, placeholder_block()),
-            None => zeroed_block(wide),
+            None => BlockEvidence::zeroed_arc(wide),
         }
     }
 
@@ -257,7 +249,7 @@ impl Slot {
 
     /// A slot with a zero block (`wide` or narrow).
     fn zeroed(wide: bool) -> Self {
-        Self::new(zeroed_block(wide))
+        Self::new(BlockEvidence::zeroed_arc(wide))
     }
 
     /// The block, to change it (copied first if a snapshot shares it, widened first if `wide`:
@@ -738,7 +730,7 @@ mod tests {
             let dirty: Vec<_> = (0..8).map(|_| vec![0xA5u8; bytes + 16]).collect();
             drop(dirty);
             for _ in 0..8 {
-                let b = zeroed_block(wide);
+                let b = BlockEvidence::zeroed_arc(wide);
                 assert_eq!((b.is_wide(), b.data_bytes()), (wide, bytes));
                 assert!(b.is_empty() && b.cells().all(|e| e.is_empty()));
             }
