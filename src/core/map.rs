@@ -143,14 +143,11 @@ pub trait BlockSink {
 }
 
 /// `mine += theirs`, leaving the sum in `mine`: added into `theirs` instead (and swapped) where
-/// `mine` is shared (a snapshot's) and `theirs` is not, so no block is copied that need not be;
-/// the sum is the same integers either way.
+/// `theirs` is not shared and `mine` is (a snapshot's) or is narrow where `theirs` is wide, so
+/// no block is copied or widened that need not be; the sum is the same integers either way.
 pub(crate) fn add_whole(mine: &mut Arc<BlockEvidence>, theirs: &mut Arc<BlockEvidence>) {
-    if Arc::get_mut(mine).is_none() && Arc::get_mut(theirs).is_some() {
-        std::mem::swap(mine, theirs);
-    }
-    if theirs.is_wide() && !mine.is_wide() && Arc::get_mut(theirs).is_some() {
-        // The wide one takes the sum: no block is widened (copied) that need not be.
+    let theirs_better = (theirs.is_wide() && !mine.is_wide()) || Arc::get_mut(mine).is_none();
+    if theirs_better && Arc::get_mut(theirs).is_some() {
         std::mem::swap(mine, theirs);
     }
     BlockEvidence::make_mut(mine, theirs.is_wide()).add_scaled(theirs, 1);
