@@ -319,11 +319,8 @@ impl BlockEvidence {
         }
         if !self.is_wide() {
             assert_eq!(rows[0], 0, "hit mass added to a narrow block");
-            let mut m = rows[1];
-            while m != 0 {
-                let r = m.trailing_zeros() as usize * ROW;
-                m &= m - 1;
-                add(&mut self.data[r..r + ROW], &d.b[r..r + ROW], sign);
+            for r in row_ranges(rows[1]) {
+                add(&mut self.data[r.clone()], &d.b[r], sign);
             }
             return;
         }
@@ -345,11 +342,8 @@ impl BlockEvidence {
         if rows == ALL_ROWS {
             return add_pairs(cells, &d.a, &d.b);
         }
-        let mut m = rows[0] | rows[1];
-        while m != 0 {
-            let r = m.trailing_zeros() as usize * ROW;
-            m &= m - 1;
-            add_pairs(&mut cells[r..r + ROW], &d.a[r..r + ROW], &d.b[r..r + ROW]);
+        for r in row_ranges(rows[0] | rows[1]) {
+            add_pairs(&mut cells[r.clone()], &d.a[r.clone()], &d.b[r]);
         }
     }
 
@@ -427,11 +421,8 @@ impl DeltaBlock {
     pub fn add_rows(&mut self, other: &DeltaBlock, rows: RowMask) {
         for (label, (dst, src)) in [(&mut self.a, &other.a), (&mut self.b, &other.b)].into_iter().enumerate()
         {
-            let mut m = rows[label];
-            while m != 0 {
-                let r = m.trailing_zeros() as usize * ROW;
-                m &= m - 1;
-                dst[r..r + ROW].iter_mut().zip(&src[r..r + ROW]).for_each(|(x, y)| *x += y);
+            for r in row_ranges(rows[label]) {
+                dst[r.clone()].iter_mut().zip(&src[r]).for_each(|(x, y)| *x += y);
             }
         }
     }
@@ -444,11 +435,8 @@ impl DeltaBlock {
             return;
         }
         for (label, cells) in [&mut self.a, &mut self.b].into_iter().enumerate() {
-            let mut m = rows[label];
-            while m != 0 {
-                let r = m.trailing_zeros() as usize * ROW;
-                m &= m - 1;
-                cells[r..r + ROW].fill(0);
+            for r in row_ranges(rows[label]) {
+                cells[r].fill(0);
             }
         }
     }
@@ -462,6 +450,18 @@ pub type RowMask = [u64; 2];
 /// Every row.
 pub const ALL_ROWS: RowMask = [u64::MAX; 2];
 const _: () = assert!(BLOCK_CELLS / ROW == 64, "a row mask is one bit per row of a block");
+
+/// The cell ranges of the rows whose bits are set in `mask` (one half of a [`RowMask`]), in
+/// increasing order.
+fn row_ranges(mut mask: u64) -> impl Iterator<Item = std::ops::Range<usize>> {
+    std::iter::from_fn(move || {
+        (mask != 0).then(|| {
+            let r = mask.trailing_zeros() as usize * ROW;
+            mask &= mask - 1;
+            r..r + ROW
+        })
+    })
+}
 
 /// The evidence one scan adds: blocks sorted by key.
 #[derive(Debug, Clone, Default, PartialEq)]
