@@ -147,11 +147,16 @@ impl VoxelCentroids {
     /// voxel key is outside the packable range (or not a number). With `CHECKED` false every
     /// point must lie inside it (the caller bounded them; debug-asserted), and is not tested.
     fn add_all<const CHECKED: bool>(&mut self, points: &[[f64; 3]], inv_ds: f64) -> usize {
-        if self.slots.len() * std::mem::size_of::<Slot>() > LARGE_TABLE_BYTES {
+        if self.is_large() {
             self.add_all_by::<CHECKED, LARGE_TABLE_BATCH>(points, inv_ds)
         } else {
             self.add_all_by::<CHECKED, ADD_BATCH>(points, inv_ds)
         }
+    }
+
+    /// True when the slots take more than [`LARGE_TABLE_BYTES`] (inserts go in longer rounds).
+    fn is_large(&self) -> bool {
+        self.slots.len() * std::mem::size_of::<Slot>() > LARGE_TABLE_BYTES
     }
 
     /// [`Self::add_all`] in rounds of `N` points.
@@ -469,8 +474,7 @@ mod tests {
             // longer (`LARGE_TABLE_BYTES`); then fewer, into that large table, so that the last
             // clear walks the occupied slots instead of emptying the whole table.
             let n = [500, 100_000, 30_000, 200][round];
-            let large = table.slots.len() * std::mem::size_of::<Slot>() > LARGE_TABLE_BYTES;
-            assert_eq!(large, round >= 2, "round {round} on a large table");
+            assert_eq!(table.is_large(), round >= 2, "round {round} on a large table");
             let pts: Vec<[f64; 3]> = (0..n)
                 .map(|i| match i % 97 {
                     0 => [f64::NAN, 0.0, 0.0],
