@@ -506,7 +506,7 @@ mod tests {
                 .map(|i| match i % 97 {
                     0 => [f64::NAN, 0.0, 0.0],
                     1 => [2e5, 0.0, 0.0],
-                    // At the ends of the key range (inside, just outside, on each axis).
+                    // At and around the ends of the key range, on each axis, and an infinity.
                     3 => [0.0, -KEY_LIMIT / inv_ds, 1.0],
                     4 => [0.0, 1.0, (KEY_LIMIT / inv_ds).next_down()],
                     5 => [KEY_LIMIT / inv_ds, 0.0, 0.0],

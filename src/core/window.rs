@@ -59,8 +59,8 @@ const R: usize = S + 2;
 /// the predictor cannot learn) cost more than the folds it saved: sample-scan evidence
 /// 0.329–0.352 → 0.361–0.374 ms, four alternated runs. A fold costs ~3 µs; a point's count
 /// would have to cost well under 1 ns to pay. Nor folding only the label that filled the brick
-/// (the other label's cells neither read nor changed until the bucket ends): the folds' count
-/// fell 53.7 → 49.9 M instructions over 48 sample scans (callgrind, of 283 M), but blocks
+/// (the other label's cells neither read nor changed until the bucket ends): the folds'
+/// instructions fell 53.7 → 49.9 M over 48 sample scans (callgrind, of 283 M), but blocks
 /// taken narrow by a free-only fold were widened by the later one (memset +1.6 M), and the
 /// evidence measured 0.345–0.366 against 0.337–0.348 ms, four alternated runs.
 pub const BRICK_POINTS: u32 = u32::MAX >> FIXED_SHIFT;
