@@ -57,8 +57,8 @@ const R: usize = S + 2;
 /// 1,790), and a region collects about an eighth of a bucket's windows, so those folds would
 /// almost all go. But the count (a loop over the 1 to 8 regions a window touches, whose exit
 /// the predictor cannot learn) cost more than the folds it saved: sample-scan evidence
-/// 0.329–0.352 → 0.361–0.374 ms, four alternated runs. A fold costs ~3 µs; a point's count
-/// would have to cost well under 1 ns to pay. Nor folding only the label that filled the brick
+/// 0.329–0.352 → 0.361–0.374 ms, four alternated runs. A fold costs ~3 µs, so the 13 folds
+/// saved were worth ~8 ns per point of a scan (~5k), and the count cost more. Nor folding only the label that filled the brick
 /// (the other label's cells neither read nor changed until the bucket ends): the folds'
 /// instructions fell 53.7 → 49.9 M over 48 sample scans (callgrind, of 283 M), but blocks
 /// taken narrow by a free-only fold were widened by the later one (memset +1.6 M), and the
