@@ -200,6 +200,16 @@ impl BlockEvidence {
         Self::from_words_box(self.data.into())
     }
 
+    /// A copy of the block, in the wide layout if `wide` (one copy, where copying and then
+    /// widening would make two).
+    pub fn to_box_widened(&self, wide: bool) -> Box<Self> {
+        if wide && !self.is_wide() {
+            Self::from_words_box(self.widened_words().into_boxed_slice())
+        } else {
+            self.to_box()
+        }
+    }
+
     /// True when the block keeps both sums per cell (see the type's docs); false when every
     /// `a` is zero and only the `b` are kept.
     #[inline(always)]
@@ -271,7 +281,7 @@ impl BlockEvidence {
     /// Makes `block` wide (in place if it is already).
     pub fn widen_box(block: &mut Box<Self>) {
         if !block.is_wide() {
-            *block = Self::from_words_box(block.widened_words().into_boxed_slice());
+            *block = block.to_box_widened(true);
         }
     }
 

@@ -372,13 +372,13 @@ impl EvidenceMap {
         delta
             .iter()
             .map(|(key, d, rows)| {
+                // Wide from the start when the delta brings hit mass.
+                let wide = rows[0] != 0;
                 let mut b = match self.blocks.get(&key) {
-                    Some(old) => old.block.to_box(),
+                    Some(old) => old.block.to_box_widened(wide),
+                    None if wide => BlockEvidence::zeroed_wide(),
                     None => BlockEvidence::zeroed(),
                 };
-                if rows[0] != 0 {
-                    BlockEvidence::widen_box(&mut b);
-                }
                 b.add_delta(d, sign, rows);
                 (key, (!b.is_empty()).then(|| Arc::from(b)))
             })
@@ -722,8 +722,7 @@ mod tests {
         // Dirty chunks of about a block's size first, so some blocks come from memory the
         // allocator reuses rather than from fresh pages.
         for wide in [false, true] {
-            let bytes =
-                if wide { 16 * crate::core::key::BLOCK_CELLS } else { 8 * crate::core::key::BLOCK_CELLS };
+            let bytes = (8 * crate::core::key::BLOCK_CELLS) << usize::from(wide);
             let dirty: Vec<_> = (0..8).map(|_| vec![0xA5u8; bytes + 16]).collect();
             drop(dirty);
             for _ in 0..8 {
