@@ -343,16 +343,17 @@ impl Scatter {
             // The bucket's first cell and first block.
             let bucket = self.grid_block_of_slot(s);
             let (origin, block) = (bucket.map(|v| v * SB as i32), bucket.map(|v| v * S as i32));
+            // Folded when done, and before any point the brick cannot take.
             let mut rest = &sorted[start..end];
-            while !rest.is_empty() {
-                if self.brick.full() {
-                    fold_brick(&mut self.brick, block, target);
+            let windows = snapped.then_some(&self.snapped);
+            loop {
+                let n = self.brick.add_points::<W, W3>(rest, origin, geo, table, windows);
+                rest = &rest[n..];
+                fold_brick(&mut self.brick, block, target);
+                if rest.is_empty() {
+                    break;
                 }
-                let (now, later) = rest.split_at(rest.len().min(self.brick.room()));
-                self.brick.add_points::<W, W3>(now, origin, geo, table, snapped.then_some(&self.snapped));
-                rest = later;
             }
-            fold_brick(&mut self.brick, block, target);
         }
         self.cells_sorted = sorted;
     }

@@ -26,7 +26,8 @@
 //!
 //! The brick holds `u32` (half the memory traffic of the blocks' `i64`): one pair adds at most
 //! `2^F` ([`FIXED_SHIFT`]) and masses are never negative, so up to [`BRICK_POINTS`] points of a
-//! label fit without overflow; a bucket with more is folded every [`BRICK_POINTS`] points.
+//! label fit without overflow, and any number of them while no cell holds two (see
+//! `CellMarks`); otherwise a bucket is folded every [`BRICK_POINTS`] points.
 //!
 //! Bits equal the reference: every lane computes `(o − f)²` per axis and sums z, y, then x,
 //! exactly as [`pair_coord`](super::evidence::pair_coord).
@@ -67,6 +68,13 @@ const R: usize = S + 2;
 /// from a table, the limit tested byte-wise without branches): the folds fell by 7 M
 /// instructions over those 48 scans (columns fill faster than regions: a window touches ~1.9
 /// of them), the counting cost 13 M (280.9 against 275.5 M in all).
+///
+/// Kept (2026-12-05): no limit at all while no bucket cell holds two points of a label (see
+/// `CellMarks`), which is the rule for voxel centroids with `ds` equal to the cell edge. A
+/// bit per cell and label costs ~15 instructions a point; mid-bucket folds went from 13 to
+/// ~4 per sample scan. Over 48 sample scans 275.5 → 267.1 M instructions, over 4 dense
+/// 64-beam scans 2.80 → 2.73 G (callgrind); dense evidence 21.4–22.1 → 19.9–20.5 ms per scan
+/// (three alternated runs, a busy host).
 pub const BRICK_POINTS: u32 = u32::MAX >> FIXED_SHIFT;
 
 /// `SPREAD[axis][mask]`: the region mask (bit `x + R·(y + R·z)` for region (x, y, z)) of every
@@ -114,12 +122,46 @@ pub struct Brick {
     margin: usize,
     pub a: Vec<u32>,
     pub b: Vec<u32>,
-    /// Points added since the last fold, per label (at most [`BRICK_POINTS`] each).
+    /// Points added since the last fold, per label (at most `cap` each).
     points: [u32; 2],
+    /// Per label, the points the brick takes between folds: any number while no bucket cell
+    /// holds two of them (see [`CellMarks`]), [`BRICK_POINTS`] once one does.
+    cap: [u32; 2],
+    /// Which bucket cells hold a point of each label since the last fold.
+    marks: CellMarks,
     /// Per label (0 = a, 1 = b): bit `x + R·(y + R·z)` set when a window touched region
     /// (x, y, z); along an axis region 0 is the low margin, 1 to `S` the bucket's blocks and
     /// `S + 1` the high margin.
     pub touched: [u64; 2],
+}
+
+/// Words of [`CellMarks`] per label: a bit per cell of a bucket.
+const MARK_WORDS: usize = SB * SB * SB / 64;
+
+/// Per label, a bit per cell of the bucket: set when a point of that label in the cell was
+/// added since the last fold.
+///
+/// While no cell holds two points of a label, a brick cell sums the windows of at most
+/// `(2M + 1)³` of them (those whose cell lies within the margin `M` of it on every axis), each
+/// adding at most `2^F`: 125 · 2^F < 2^32 for la3dm's geometry (M = 2), so the brick takes
+/// any number of them. Training points are voxel centroids, and with `ds` equal to the cell
+/// edge (the default) a cell holds at most one of each label: rounding can put a centroid on
+/// its voxel's far side, which the marks catch, and a bucket then folds every [`BRICK_POINTS`]
+/// points as before.
+#[derive(Debug, Clone)]
+struct CellMarks([u64; 2 * MARK_WORDS]);
+
+impl Default for CellMarks {
+    fn default() -> Self {
+        Self([0; 2 * MARK_WORDS])
+    }
+}
+
+/// The largest margin for which a brick whose cells hold at most one point per label cannot
+/// overflow: `(2M + 1)³ ≤ BRICK_POINTS`.
+const fn unique_cells_fit(margin: usize) -> bool {
+    let side = 2 * margin as u64 + 1;
+    side * side * side <= BRICK_POINTS as u64
 }
 
 impl Brick {
@@ -133,15 +175,26 @@ impl Brick {
         self.folded();
     }
 
-    /// True when the brick must be folded before it takes another point.
-    pub fn full(&self) -> bool {
-        self.room() == 0
-    }
-
     /// Marks the brick folded (its cells are zero again).
     pub fn folded(&mut self) {
         self.touched = [0; 2];
         self.points = [0; 2];
+        self.cap = [if unique_cells_fit(self.margin) { u32::MAX } else { BRICK_POINTS }; 2];
+        self.marks = CellMarks::default();
+    }
+
+    /// Marks bucket cell `cell` (`x + SB·(y + SB·z)`) as holding a point of label `label`;
+    /// false when the brick must be folded before it takes that point (the marks then need
+    /// no undoing: a fold clears them).
+    #[inline(always)]
+    fn admit(&mut self, label: usize, cell: usize) -> bool {
+        let word = &mut self.marks.0[(label * MARK_WORDS + cell / 64) % (2 * MARK_WORDS)];
+        let bit = 1u64 << (cell % 64);
+        if *word & bit != 0 {
+            self.cap[label] = BRICK_POINTS;
+        }
+        *word |= bit;
+        self.points[label] < self.cap[label]
     }
 
     pub fn edge(&self) -> usize {
@@ -158,11 +211,6 @@ impl Brick {
         if i < self.margin { 0 } else { ((i - self.margin) / B + 1).min(S + 1) as u32 }
     }
 
-    /// Points (of either label) the brick takes before it must be folded.
-    pub fn room(&self) -> usize {
-        (BRICK_POINTS - self.points[0].max(self.points[1])) as usize
-    }
-
     /// Where the window of the point `p` (cell units) lies: its offset `f` from its cell's
     /// centre, the first window offset per axis, the brick index of the window's first cell
     /// and the regions it touches. `bucket_origin` is the first cell of the bucket (the point's
@@ -176,8 +224,9 @@ impl Brick {
     ) -> Placement {
         let (c, f) = split_point(p);
         let start = f.map(|v| window_start(v, ell_cells));
-        let (at, regions) = self.locate::<W>(std::array::from_fn(|a| c[a] - bucket_origin[a] + start[a]));
-        Placement { f, start, at, regions }
+        let cell = std::array::from_fn(|a| c[a] - bucket_origin[a]);
+        let (at, regions) = self.locate::<W>(std::array::from_fn(|a| cell[a] + start[a]));
+        Placement { f, start, at, regions, cell: bucket_cell(cell) }
     }
 
     /// The brick index of a window's first cell and the regions the window touches, from that
@@ -211,14 +260,14 @@ impl Brick {
     #[inline(always)]
     pub(crate) fn note(&mut self, hit: bool, regions: u64) {
         let label = usize::from(!hit);
-        debug_assert!(self.points[label] < BRICK_POINTS, "brick not folded in time");
+        debug_assert!(self.points[label] < self.cap[label], "brick not folded in time");
         self.points[label] += 1;
         self.touched[label] |= regions;
     }
 
-    /// Adds the windows of `pts` (at most [`Self::room`] of them), all in the bucket starting at
-    /// cell `bucket_origin`; with `snapped`, the points sit on its sub-cell centres and their
-    /// windows are read from it instead of computed.
+    /// Adds the windows of `pts`, all in the bucket starting at cell `bucket_origin`, up to the
+    /// first that needs a fold first; returns how many it added. With `snapped`, the points
+    /// sit on its sub-cell centres and their windows are read from it instead of computed.
     pub fn add_points<const W: usize, const W3: usize>(
         &mut self,
         pts: &[CellPoint],
@@ -226,32 +275,38 @@ impl Brick {
         geo: &PairGeometry,
         table: &KernelTable,
         snapped: Option<&SnappedWindows>,
-    ) {
-        assert!(pts.len() <= self.room(), "brick not folded in time");
+    ) -> usize {
         // The margin of width W is ⌈W/2⌉ (see `window_shape`): a brick edge known at compile
         // time makes the window's row offsets constants, checked once per window, not per row.
         let e = SB + 2 * W.div_ceil(2);
         assert_eq!(e, self.edge, "a brick of width {W}'s edge");
         match snapped {
             Some(windows) => {
-                for &(p, hit) in pts {
+                for (i, &(p, hit)) in pts.iter().enumerate() {
                     debug_assert_eq!(split_point(p).0.map(|c| c & !(SB as i32 - 1)), bucket_origin);
                     debug_assert_eq!(windows.brick_edge, e, "windows placed for another brick");
-                    let (at, regions, window) = windows.place(p);
+                    let (at, regions, window, cell) = windows.place(p);
+                    if !self.admit(usize::from(!hit), cell) {
+                        return i;
+                    }
                     let cells = if hit { &mut self.a } else { &mut self.b };
                     add_values::<W, W3>(windows.window::<W3>(window), cells, at, e);
                     self.note(hit, regions);
                 }
             }
             None => {
-                for &(p, hit) in pts {
+                for (i, &(p, hit)) in pts.iter().enumerate() {
                     let pl = self.place::<W>(p, bucket_origin, geo.ell_cells);
+                    if !self.admit(usize::from(!hit), pl.cell) {
+                        return i;
+                    }
                     let cells = if hit { &mut self.a } else { &mut self.b };
                     add_window::<W, W3>(&window_axes::<W>(pl.start, pl.f), geo.scale, table, cells, pl.at, e);
                     self.note(hit, pl.regions);
                 }
             }
         }
+        pts.len()
     }
 }
 
@@ -292,10 +347,9 @@ pub struct SnappedWindows {
     /// The edge of the bricks the windows are placed in (see [`Brick`]).
     brick_edge: usize,
     /// Per cell `l` of a bucket and sub-cell `k` along an axis, at `l·n + k` (the low bits of a
-    /// point's sub-cell index), per axis: the brick index step of the window's first cell
-    /// (its brick coordinate times the axis' stride) and the [`SPREAD`] of the regions the
-    /// window touches along the axis.
-    places: Vec<[(u32, u64); 3]>,
+    /// point's sub-cell index), per axis: where the point and its window lie (see
+    /// [`AxisPlace`]).
+    places: Vec<[AxisPlace; 3]>,
     /// `n³` windows of W³ values; window `kx + n·(ky + n·kz)` for sub-cell `k` per axis.
     values: Vec<i32>,
 }
@@ -341,7 +395,11 @@ impl SnappedWindows {
                 // bucket (the bucket's cells start after the margin).
                 let first = (l as i32 + window_start(offset(k), geo.ell_cells) + margin as i32) as usize;
                 let regions = probe.axis_regions::<W>(first) as usize;
-                std::array::from_fn(|a| ((first * e.pow(a as u32)) as u32, SPREAD[a][regions]))
+                std::array::from_fn(|a| AxisPlace {
+                    step: (first * e.pow(a as u32)) as u32,
+                    cell: (l * SB.pow(a as u32)) as u32,
+                    spread: SPREAD[a][regions],
+                })
             })
             .collect();
         (self.built_for, self.shift, self.brick_edge) = (built_for, geo.sub_cells.trailing_zeros(), e);
@@ -350,22 +408,24 @@ impl SnappedWindows {
 
     /// Where the window of a point at a sub-cell centre lies in the brick of its bucket: the
     /// brick index of the window's first cell, the regions the window touches (see
-    /// [`Brick::touched`]) and the window's index here. The sub-cell index per axis,
+    /// [`Brick::touched`]), the window's index here and the point's cell in the bucket (see
+    /// [`Placement::cell`]). The sub-cell index per axis,
     /// `floor(p·n)`, is `p·n − ½` exactly, rounded without a saturating cast; its low bits
     /// are the cell in the bucket and the sub-cell, whose placement is read from a table.
     #[inline(always)]
-    pub(crate) fn place(&self, p: [f64; 3]) -> (usize, u64, usize) {
+    pub(crate) fn place(&self, p: [f64; 3]) -> (usize, u64, usize, usize) {
         let n = f64::from(1u32 << self.shift);
-        let (mut at, mut regions, mut window) = (0usize, u64::MAX, 0usize);
+        let (mut at, mut regions, mut window, mut cell) = (0usize, u64::MAX, 0usize, 0usize);
         for a in 0..3 {
             let sub = round_to_i64(p[a] * n - 0.5);
             debug_assert!((sub as f64 + 0.5) / n == p[a], "point not at a sub-cell centre: {p:?}");
-            let (step, spread) = self.places[(sub & (((SB as i64) << self.shift) - 1)) as usize][a];
-            at += step as usize;
-            regions &= spread;
+            let place = self.places[(sub & (((SB as i64) << self.shift) - 1)) as usize][a];
+            at += place.step as usize;
+            regions &= place.spread;
             window |= ((sub & ((1 << self.shift) - 1)) as usize) << (self.shift as usize * a);
+            cell += place.cell as usize;
         }
-        (at, regions, window)
+        (at, regions, window, cell)
     }
 
     /// The offset from its cell's centre of sub-cell `k`'s centre: what [`split_point`] gives
@@ -381,6 +441,17 @@ impl SnappedWindows {
     }
 }
 
+/// Along one axis, for a point in a given cell of its bucket and sub-cell (see
+/// [`SnappedWindows::place`]): the brick index step of the window's first cell (its brick
+/// coordinate times the axis' stride), the step of the point's cell in [`Placement::cell`],
+/// and the [`SPREAD`] of the regions the window touches.
+#[derive(Debug, Clone, Copy)]
+struct AxisPlace {
+    step: u32,
+    cell: u32,
+    spread: u64,
+}
+
 /// Where one point's window lies in a brick (see [`Brick::place`]).
 #[derive(Debug, Clone, Copy)]
 pub(crate) struct Placement {
@@ -392,6 +463,16 @@ pub(crate) struct Placement {
     pub at: usize,
     /// Regions the window touches (see [`Brick::touched`]).
     pub regions: u64,
+    /// The point's cell in its bucket, `x + SB·(y + SB·z)`.
+    pub cell: usize,
+}
+
+/// The index `x + SB·(y + SB·z)` of the cell at offset `c` (each in `0..SB`) from a bucket's
+/// first cell.
+#[inline(always)]
+fn bucket_cell(c: [i32; 3]) -> usize {
+    debug_assert!(c.iter().all(|v| (0..SB as i32).contains(v)), "cell {c:?} outside the bucket");
+    c.iter().rev().fold(0, |i, &v| i * SB + v as usize)
 }
 
 /// Adds one window's W³ pair values to the brick `cells` (edge `e`), whose first cell is `at`.
@@ -484,8 +565,13 @@ mod tests {
                 });
                 let p = to_cell_units(metres, &geo);
                 let pl = brick.place::<W>(p, origin, geo.ell_cells);
-                let (at, regions, i) = windows.place(p);
-                assert_eq!((at, regions), (pl.at, pl.regions), "n {n}, sub-cell {k:?}");
+                let (at, regions, i, in_bucket) = windows.place(p);
+                assert_eq!((at, regions, in_bucket), (pl.at, pl.regions, pl.cell), "n {n}, sub-cell {k:?}");
+                assert_eq!(
+                    in_bucket,
+                    bucket_cell([0, 1, 2].map(|a| cell[a] - origin[a])),
+                    "n {n}, sub-cell {k:?}"
+                );
                 let mut computed = [0i32; W3];
                 window_values_portable::<W, W3>(
                     &window_axes::<W>(pl.start, pl.f),
@@ -518,6 +604,65 @@ mod tests {
             }
         }
         assert_eq!(window_shape(2.0), Some((4, 2)), "la3dm's geometry");
+    }
+
+    /// A bucket with a point of each label in every one of its cells, each at the sub-cell
+    /// nearest the centre (the largest window values), goes into the brick without a fold, and
+    /// no brick cell wraps: each equals the sum of its windows in 64 bits. A second point in a
+    /// cell brings back the limit of [`BRICK_POINTS`] points between folds.
+    #[test]
+    fn a_brick_takes_one_point_per_cell_without_folds() {
+        let geo = PairGeometry::new(0.1, 0.2, 8);
+        let table = KernelTable::new();
+        let (_, margin) = window_shape(geo.ell_cells).expect("la3dm's window");
+        let mut windows = SnappedWindows::default();
+        assert!(windows.prepare::<4, 64>(&geo, &table));
+        let mut brick = Brick::default();
+        brick.reset(margin);
+        let origin = [-(SB as i32), 0, 2 * SB as i32];
+        let centre = |c: [usize; 3]| {
+            to_cell_units(
+                std::array::from_fn(|a| (f64::from(origin[a] + c[a] as i32) + 0.45) * geo.res_m),
+                &geo,
+            )
+        };
+        let cells: Vec<[usize; 3]> =
+            (0..SB * SB * SB).map(|i| [i % SB, i / SB % SB, i / (SB * SB)]).collect();
+        let pts: Vec<CellPoint> =
+            [true, false].into_iter().flat_map(|hit| cells.iter().map(move |&c| (centre(c), hit))).collect();
+        assert!(pts.len() > 10 * BRICK_POINTS as usize);
+        let added = brick.add_points::<4, 64>(&pts, origin, &geo, &table, Some(&windows));
+        assert_eq!(added, pts.len(), "no fold needed");
+        let mut wide = vec![0u64; brick.a.len()];
+        for &(p, _) in &pts[..cells.len()] {
+            let (at, _, window, _) = windows.place(p);
+            let vals = windows.window::<64>(window);
+            for (k, &v) in vals.iter().enumerate() {
+                let (z, y, x) = (k / 16, k / 4 % 4, k % 4);
+                wide[at + (z * brick.edge + y) * brick.edge + x] += v as u64;
+            }
+        }
+        let a: Vec<u64> = brick.a.iter().map(|&v| u64::from(v)).collect();
+        assert_eq!(a, wide, "hits");
+        assert_eq!(brick.b, brick.a, "frees, the same windows");
+        let top = *wide.iter().max().expect("cells");
+        assert!(top > 2 << FIXED_SHIFT, "largest sum {top}: windows overlap");
+
+        // After a fold, three points in distinct cells, then the same cell over and over: the
+        // brick takes BRICK_POINTS of them in all.
+        brick.a.fill(0);
+        brick.b.fill(0);
+        brick.folded();
+        let again: Vec<CellPoint> =
+            pts[..3].iter().copied().chain(std::iter::repeat_n(pts[7], 400)).collect();
+        let added = brick.add_points::<4, 64>(&again, origin, &geo, &table, Some(&windows));
+        assert_eq!(added, BRICK_POINTS as usize);
+        // Computed windows (no sub-cells) count the same way.
+        brick.a.fill(0);
+        brick.folded();
+        let raw = PairGeometry::new(0.1, 0.2, 0);
+        let added = brick.add_points::<4, 64>(&again, origin, &raw, &table, None);
+        assert_eq!(added, BRICK_POINTS as usize);
     }
 
     #[test]
