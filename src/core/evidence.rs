@@ -952,6 +952,41 @@ mod tests {
         }
     }
 
+    /// A bucket with a point of each label in every cell (far more than a brick takes between
+    /// folds when cells repeat, none repeating) equals the brute force, with and without
+    /// sub-cells; so does the same with one cell holding a second hit halfway through.
+    #[test]
+    fn buckets_of_one_point_per_cell_equal_the_brute_force() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(12);
+        let sb = super::super::window::SB;
+        let mut hits: Vec<[f64; 3]> = (0..sb * sb * sb)
+            .map(|i| {
+                let c = [i % sb, i / sb % sb, i / (sb * sb)];
+                c.map(|v| (v as f64 + rng.random_range(0.05..0.95)) * 0.1 - 0.8)
+            })
+            .collect();
+        let frees: Vec<[f64; 3]> = hits.iter().rev().map(|h| h.map(|v| v + 0.004)).collect();
+        assert!(hits.len() > 4 * super::super::window::BRICK_POINTS as usize);
+        let table = KernelTable::new();
+        for repeat in [false, true] {
+            if repeat {
+                let h = hits[7];
+                hits.insert(hits.len() / 2, h.map(|v| v + 0.001));
+            }
+            let set = TrainingSet { hits: hits.clone(), frees: frees.clone(), ..Default::default() };
+            for sub in [0, 8] {
+                let geo = PairGeometry::new(0.1, 0.2, sub);
+                let fast = delta_cells(&Scatter::default().delta(&set, &geo, &table));
+                assert_eq!(
+                    fast,
+                    brute_cells(&set, &geo, &table),
+                    "sub-cells {sub}, a repeated cell: {repeat}"
+                );
+            }
+        }
+    }
+
     /// The float floor equals the integer one converted, at and around integers, halves and
     /// the ends of the range, for both signs.
     #[test]
