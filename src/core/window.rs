@@ -71,8 +71,9 @@ const R: usize = S + 2;
 ///
 /// Kept (2026-12-05): no limit at all while no bucket cell holds two points of a label (see
 /// `CellMarks`), which is the rule for voxel centroids with `ds` equal to the cell edge. A
-/// bit per cell and label costs ~15 instructions a point; mid-bucket folds went from 13 to
-/// ~4 per sample scan. Over 48 sample scans 275.5 → 267.1 M instructions, over 4 dense
+/// bit per cell and label costs ~15 instructions a point; the sample scans' training points
+/// never share a cell, and their folds went from 1,948 to 1,420 (one per bucket) over 48
+/// scans. Over 48 sample scans 275.5 → 267.1 M instructions, over 4 dense
 /// 64-beam scans 2.80 → 2.73 G (callgrind); dense evidence 21.4–22.1 → 19.9–20.5 ms per scan
 /// (three alternated runs, a busy host).
 pub const BRICK_POINTS: u32 = u32::MAX >> FIXED_SHIFT;
