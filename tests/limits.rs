@@ -77,36 +77,3 @@ async fn oversized_messages_and_boxes_are_refused() {
     assert_eq!(info.version, 0, "nothing was applied");
     assert_eq!(server.terminate().code(), Some(0));
 }
-
-/// The tunables the running server's process was started with. (glibc may rewrite a string of
-/// several tunables in place as it reads them, so only single ones are compared.)
-#[cfg(all(target_os = "linux", target_env = "gnu"))]
-fn glibc_tunables_of(pid: u32) -> Option<String> {
-    let env = std::fs::read(format!("/proc/{pid}/environ")).unwrap();
-    env.split(|&b| b == 0)
-        .filter_map(|kv| std::str::from_utf8(kv).ok())
-        .find_map(|kv| kv.strip_prefix("GLIBC_TUNABLES=").map(str::to_string))
-}
-
-/// The server restarts itself (same pid, same arguments: it still serves on the ports it was
-/// told) with glibc's heaps on transparent huge pages when the kernel offers them, and leaves a
-/// `glibc.malloc.hugetlb` it was given alone (`=0` turns huge pages off).
-#[cfg(all(target_os = "linux", target_env = "gnu"))]
-#[test]
-fn the_server_asks_for_huge_pages_unless_told_otherwise() {
-    let thp = std::fs::read_to_string("/sys/kernel/mm/transparent_hugepage/enabled").unwrap_or_default();
-    let offered = thp.contains("[always]") || thp.contains("[madvise]");
-    let dir = tempfile::tempdir().unwrap();
-    let cases: [(&[&str], Option<&str>); 2] = [
-        (&[], offered.then_some("glibc.malloc.hugetlb=1")),
-        (&["env", "GLIBC_TUNABLES=glibc.malloc.hugetlb=0"], Some("glibc.malloc.hugetlb=0")),
-    ];
-    for (i, (wrapper, want)) in cases.into_iter().enumerate() {
-        let data = dir.path().join(format!("data{i}"));
-        let server = common::start_serve_wrapped(&data, &[], wrapper);
-        let (code, _) = common::http_request(server.http_addr, "GET", "/healthz", b"");
-        assert_eq!(code, 200, "case {i}: the restarted server answers on its port");
-        assert_eq!(glibc_tunables_of(server.pid()).as_deref(), want, "case {i}, THP: {thp}");
-        server.kill();
-    }
-}

@@ -80,7 +80,6 @@ enum Command {
 }
 
 pub fn main() -> ExitCode {
-    heap::use_huge_pages();
     heap::keep_freed_memory();
     let cli = Cli::parse();
     let result = match cli.command {
