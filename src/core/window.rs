@@ -158,8 +158,8 @@ impl Default for CellMarks {
     }
 }
 
-/// The largest margin for which a brick whose cells hold at most one point per label cannot
-/// overflow: `(2M + 1)³ ≤ BRICK_POINTS`.
+/// True when a brick of margin `margin` cannot overflow while no cell holds two points of a
+/// label: `(2M + 1)³ ≤ BRICK_POINTS` (M ≤ 2, windows up to 4 cells wide).
 const fn unique_cells_fit(margin: usize) -> bool {
     let side = 2 * margin as u64 + 1;
     side * side * side <= BRICK_POINTS as u64
