@@ -289,11 +289,14 @@ fn slot_of(key: u64, mask: usize) -> usize {
 #[inline]
 fn voxel_key_in_range(p: [f64; 3], inv_ds: f64) -> u64 {
     debug_assert!(voxel_key_or_outside(p, inv_ds).1, "point outside the key range: {p:?}");
-    let mut key = 0u64;
-    for v in p {
-        key = (key << KEY_BITS) | ((super::evidence::floor_i64(v * inv_ds) + KEY_LIMIT as i64) as u64);
-    }
-    key
+    pack_key(p.map(|v| v * inv_ds))
+}
+
+/// The floors of voxel coordinates `s` (each inside ±2^20) packed as three 21-bit fields.
+#[inline(always)]
+fn pack_key(s: [f64; 3]) -> u64 {
+    s.iter()
+        .fold(0, |key, &v| (key << KEY_BITS) | ((super::evidence::floor_i64(v) + KEY_LIMIT as i64) as u64))
 }
 
 /// The tests' reference for [`voxel_key_or_outside`], written plainly: the voxel key, or `None`
@@ -315,17 +318,10 @@ fn voxel_key(p: [f64; 3], inv_ds: f64) -> Option<u64> {
 /// and false for a point outside ±2^20 voxels or not finite; without branches.
 #[inline(always)]
 fn voxel_key_or_outside(p: [f64; 3], inv_ds: f64) -> (u64, bool) {
-    let mut key = 0u64;
-    let mut all_inside = true;
-    for v in p {
-        let s = v * inv_ds;
-        let inside = (-KEY_LIMIT..KEY_LIMIT).contains(&s);
-        all_inside &= inside;
-        // Outside the range the floor is not exact (or NaN): take that of 0 instead.
-        let s = if inside { s } else { 0.0 };
-        key = (key << KEY_BITS) | ((super::evidence::floor_i64(s) + KEY_LIMIT as i64) as u64);
-    }
-    (key, all_inside)
+    let s = p.map(|v| v * inv_ds);
+    let inside = s.map(|v| (-KEY_LIMIT..KEY_LIMIT).contains(&v));
+    // Outside the range the floor is not exact (or NaN): take that of 0 instead.
+    (pack_key([0, 1, 2].map(|a| if inside[a] { s[a] } else { 0.0 })), inside[0] & inside[1] & inside[2])
 }
 
 /// Builds training sets; holds scratch space so repeated scans allocate nothing new.
