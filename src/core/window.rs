@@ -186,7 +186,10 @@ impl Brick {
 
     /// Marks bucket cell `cell` (`x + SB·(y + SB·z)`) as holding a point of label `label`;
     /// false when the brick must be folded before it takes that point (the marks then need
-    /// no undoing: a fold clears them).
+    /// no undoing: a fold clears them). [`Self::note`] counts the point once its window is in.
+    /// Tried and not kept (2026-12-05): one call that also counts the point and notes its
+    /// regions, before the window's adds: 267.1 → 267.7 M instructions over 48 sample scans
+    /// (268.5 M counting without a branch).
     #[inline(always)]
     fn admit(&mut self, label: usize, cell: usize) -> bool {
         let word = &mut self.marks.0[(label * MARK_WORDS + cell / 64) % (2 * MARK_WORDS)];
