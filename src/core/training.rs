@@ -17,6 +17,7 @@
 //! voxels; free voxels too, except that a large scan's go shell by shell (see `FreeRay`): their
 //! order carries no meaning (evidence sums are integers, the same in any order).
 
+use super::key::CellKey;
 use super::params::{MapParams, RangeMode};
 
 /// Labelled training points of one scan, in world metres.
@@ -495,18 +496,17 @@ impl TrainingBuilder {
             *at += 1;
         }
         // `shell_ends[k]` is now where shell k's extras end.
-        // Rays with a regular sample in the current shell; those of shell 1 first. (Dropping
-        // the others in the pass that places the samples, writing each kept ray back, made
-        // the dense drive's training 1 ms slower.)
-        self.rays.retain(|r| fr < r.len);
         let mut next_extra = 0;
         let mut k = 0u32;
         while !self.rays.is_empty() || next_extra < self.sorted_extras.len() {
             let d = f64::from(k) * fr;
+            // Rays with a regular sample in this shell (shell 0 has none). (Dropping the others
+            // in the pass that places the samples, writing each kept ray back, made the dense
+            // drive's training 1 ms slower.)
             if k > 0 {
                 self.rays.retain(|r| d < r.len);
             }
-            let end = self.shell_ends.get(k as usize).copied().unwrap_or(next_extra).max(next_extra);
+            let end = self.shell_ends.get(k as usize).copied().unwrap_or(next_extra);
             self.samples.clear();
             for r in self.rays.iter().filter(|_| k > 0) {
                 // Extras of earlier rays first; a ray's own extra comes after its regular samples.
@@ -568,7 +568,9 @@ fn shells_separate_voxels(ds: f64, fr: f64, extent: f64) -> bool {
 /// The shell of the voxel holding `p`: the distance of its centre from `o` in multiples of
 /// `fr`, rounded (a function of the voxel alone).
 fn shell_of(p: [f64; 3], o: [f64; 3], ds: f64, inv_ds: f64, fr: f64) -> u32 {
-    let c = p.map(|v| (super::evidence::floor_i64(v * inv_ds) as f64 + 0.5) * ds);
+    // The voxel as the table keys it (`v · inv_ds`, floored); its key is in range here.
+    let c =
+        CellKey::from_cells(p.map(|v| v * inv_ds)).expect("a free sample inside the key range").centre(ds);
     let d = [c[0] - o[0], c[1] - o[1], c[2] - o[2]];
     ((d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt() / fr + 0.5) as u32
 }
