@@ -66,8 +66,9 @@ pub fn run_demo(a: DemoArgs) -> Result<()> {
         );
         print_examples(grpc, http, &a.dir);
         if !a.exit {
+            let stop = super::serve::shutdown_signal();
             println!("\nServing until Ctrl-C.");
-            super::serve::shutdown_signal().await;
+            stop.await;
         }
         running.shutdown().await
     })

@@ -312,25 +312,34 @@ fn incoming_nodelay(
     })
 }
 
-/// Resolves when SIGINT or SIGTERM arrives.
-pub async fn shutdown_signal() {
-    let ctrl_c = tokio::signal::ctrl_c();
+/// A future that resolves when SIGINT or SIGTERM arrives. The handlers are installed when this
+/// is called, not when the future is first polled: callers install them before they announce
+/// that they are ready, so a supervisor's SIGTERM that follows the announcement is always a
+/// graceful shutdown, never the default (immediate) death.
+pub fn shutdown_signal() -> impl std::future::Future<Output = ()> {
     #[cfg(unix)]
     {
-        let mut term = match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-            Ok(t) => t,
-            Err(_) => {
-                let _ = ctrl_c.await;
-                return;
+        use tokio::signal::unix::{SignalKind, signal};
+        let streams = signal(SignalKind::interrupt()).and_then(|i| Ok((i, signal(SignalKind::terminate())?)));
+        async move {
+            match streams {
+                Ok((mut int, mut term)) => {
+                    tokio::select! {
+                        _ = int.recv() => {}
+                        _ = term.recv() => {}
+                    }
+                }
+                Err(e) => {
+                    eprintln!("bgkmap: cannot install signal handlers ({e}); waiting for Ctrl-C only");
+                    let _ = tokio::signal::ctrl_c().await;
+                }
             }
-        };
-        tokio::select! {
-            _ = ctrl_c => {}
-            _ = term.recv() => {}
         }
     }
     #[cfg(not(unix))]
-    let _ = ctrl_c.await;
+    async {
+        let _ = tokio::signal::ctrl_c().await;
+    }
 }
 
 pub fn runtime() -> Result<tokio::runtime::Runtime> {
@@ -345,6 +354,7 @@ pub fn run(a: ServeArgs) -> Result<()> {
     let config = a.resolve()?;
     runtime()?.block_on(async {
         let running = start(&config).await?;
+        let stop = shutdown_signal();
         // zenoh first: test harnesses read lines until both gRPC and HTTP are reported.
         for l in &running.zenoh_locators {
             println!("zenoh listening on {l}");
@@ -354,7 +364,7 @@ pub fn run(a: ServeArgs) -> Result<()> {
         println!("data directory {}", config.data_dir.display());
         use std::io::Write as _;
         let _ = std::io::stdout().flush();
-        shutdown_signal().await;
+        stop.await;
         eprintln!("bgkmap: shutting down (draining queues)");
         running.shutdown().await
     })
