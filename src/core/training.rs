@@ -203,13 +203,18 @@ impl VoxelCentroids {
                 *h = slot_of(k, mask);
                 super::simd::prefetch(&slots[*h]);
             }
+            let mut len = self.len;
+            // Slices of known length: the length in a register, not reloaded past every store.
+            let (slots, sums, vkeys) =
+                (&mut self.slots[..=mask], &mut self.sums[..=most], &mut self.keys[..=most]);
             for (((&k, &h), &p), &ok) in keys.iter().zip(&homes).zip(chunk).zip(&inside) {
                 if ok {
-                    self.insert(k, h, p, mask);
+                    len = insert(slots, sums, vkeys, len, k, h, p, mask);
                 } else {
                     rejected += 1;
                 }
             }
+            self.len = len;
         }
         rejected
     }
@@ -221,37 +226,6 @@ impl VoxelCentroids {
         } else {
             self.add_all::<true>(samples, inv_ds);
         }
-    }
-
-    /// Adds `p` to the voxel `key`, probing from its home slot `home`. `sums` must have room
-    /// for one more voxel and its scratch entry.
-    ///
-    /// Without a branch on whether the voxel is new (about half of a scan's lookups find it,
-    /// in no order a predictor learns): a new voxel's index is `len`, whose sum is
-    /// [`EMPTY_SUM`], so both cases add the point to `sums[index]` and write the slot; `len`
-    /// then grows by one if the voxel was new, and the entry after the last is reset.
-    #[inline]
-    fn insert(&mut self, key: u64, home: usize, p: [f64; 3], mask: usize) {
-        let slots = &mut self.slots[..=mask];
-        let mut i = home & mask;
-        // One branch, taken on a collision only. Written plainly, the compiler tests first
-        // whether the slot is empty, in a branch of its own that goes either way.
-        loop {
-            let s = slots[i];
-            if std::hint::black_box((s.index == 0) | (s.key == key)) {
-                break;
-            }
-            i = (i + 1) & mask;
-        }
-        let found = slots[i].index;
-        let n = self.len;
-        let at = if found == 0 { n } else { found as usize - 1 };
-        slots[i] = Slot { key, index: at as u32 + 1 };
-        self.keys[n] = key;
-        let e = &mut self.sums[at];
-        *e = ([e.0[0] + p[0], e.0[1] + p[1], e.0[2] + p[2]], e.1 + 1);
-        self.len = n + usize::from(found == 0);
-        self.sums[self.len] = EMPTY_SUM;
     }
 
     /// Resizes the table to hold `voxels` at most half full.
@@ -280,6 +254,47 @@ impl VoxelCentroids {
             [s[0] / n, s[1] / n, s[2] / n]
         }));
     }
+}
+
+/// Adds `p` to the voxel `key` of a table holding `len` voxels, probing from its home slot
+/// `home`; returns the new number of voxels. `sums` and `keys` must have room for one more voxel
+/// and its scratch entry, and `sums[len]` must be [`EMPTY_SUM`].
+///
+/// Without a branch on whether the voxel is new (about half of a scan's lookups find it,
+/// in no order a predictor learns): a new voxel's index is `len`, whose sum is
+/// [`EMPTY_SUM`], so both cases add the point to `sums[index]` and write the slot; the number
+/// then grows by one if the voxel was new, and the entry after the last is reset.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+fn insert(
+    slots: &mut [Slot],
+    sums: &mut [([f64; 3], u32)],
+    keys: &mut [u64],
+    len: usize,
+    key: u64,
+    home: usize,
+    p: [f64; 3],
+    mask: usize,
+) -> usize {
+    let mut i = home & mask;
+    // One branch, taken on a collision only. Written plainly, the compiler tests first
+    // whether the slot is empty, in a branch of its own that goes either way.
+    loop {
+        let s = slots[i];
+        if std::hint::black_box((s.index == 0) | (s.key == key)) {
+            break;
+        }
+        i = (i + 1) & mask;
+    }
+    let found = slots[i].index;
+    let at = if found == 0 { len } else { found as usize - 1 };
+    slots[i] = Slot { key, index: at as u32 + 1 };
+    keys[len] = key;
+    let e = &mut sums[at];
+    *e = ([e.0[0] + p[0], e.0[1] + p[1], e.0[2] + p[2]], e.1 + 1);
+    let len = len + usize::from(found == 0);
+    sums[len] = EMPTY_SUM;
+    len
 }
 
 /// The home slot of `key` in a table of `mask + 1` slots (a power of two): the top bits of the
@@ -508,11 +523,16 @@ impl TrainingBuilder {
             }
             let end = self.shell_ends.get(k as usize).copied().unwrap_or(next_extra);
             self.samples.clear();
+            // The ray number of the next extra sample of this shell (none: past every ray).
+            let order_at =
+                |i: usize, extras: &[(u32, u32, [f64; 3])]| if i < end { extras[i].1 } else { u32::MAX };
+            let mut next_order = order_at(next_extra, &self.sorted_extras);
             for r in self.rays.iter().filter(|_| k > 0) {
                 // Extras of earlier rays first; a ray's own extra comes after its regular samples.
-                while next_extra < end && self.sorted_extras[next_extra].1 < r.order {
+                while next_order < r.order {
                     self.samples.push(self.sorted_extras[next_extra].2);
                     next_extra += 1;
+                    next_order = order_at(next_extra, &self.sorted_extras);
                 }
                 let p = along(o, r.n, d);
                 debug_assert_eq!(shell(p), k, "sample {d} m along {:?} left its shell", r.n);
