@@ -365,10 +365,10 @@ pub struct TrainingBuilder {
     samples: Vec<[f64; 3]>,
     /// The scan's rays with free samples.
     rays: Vec<FreeRay>,
-    /// Per ray with one, the extra sample `fr` short of its end (and the origin): its shell,
-    /// its ray's number, the point; then the same by shell.
-    extras: Vec<(u32, u32, [f64; 3])>,
-    sorted_extras: Vec<(u32, u32, [f64; 3])>,
+    /// Per ray with one, the extra sample `fr` short of its end (and the origin); then the
+    /// same by shell.
+    extras: Vec<Extra>,
+    sorted_extras: Vec<Extra>,
     /// Counting sort of `extras` by shell.
     shell_ends: Vec<usize>,
     /// Whether the last scan's free samples went in shell by shell ([`FreeRay`]).
@@ -491,35 +491,16 @@ impl TrainingBuilder {
         let (ds, fr) = (params.ds_resolution_m, params.free_resolution_m);
         let inv_ds = 1.0 / ds;
         let shell = |p: [f64; 3]| shell_of(p, o, ds, inv_ds, fr);
-        // The extra samples (and the origin, after every ray), grouped by shell by a stable
-        // counting sort, so each shell's stay in ray order.
+        // Each ray's extra sample, and the origin after every ray.
         self.extras.clear();
-        self.shell_ends.clear();
-        for r in &self.rays {
-            if r.len > fr {
-                let p = along(o, r.n, r.len - fr);
-                self.extras.push((shell(p), r.order, p));
-            }
+        for r in self.rays.iter().filter(|r| r.len > fr) {
+            let p = along(o, r.n, r.len - fr);
+            self.extras.push(Extra { shell: shell(p), order: r.order, p });
         }
         if params.origin_as_free {
-            self.extras.push((shell(o), u32::MAX, o));
+            self.extras.push(Extra { shell: shell(o), order: u32::MAX, p: o });
         }
-        let shells = self.extras.iter().map(|e| e.0 as usize + 1).max().unwrap_or(0);
-        self.shell_ends.resize(shells + 1, 0);
-        for e in &self.extras {
-            self.shell_ends[e.0 as usize + 1] += 1;
-        }
-        for i in 1..self.shell_ends.len() {
-            self.shell_ends[i] += self.shell_ends[i - 1];
-        }
-        self.sorted_extras.clear();
-        self.sorted_extras.resize(self.extras.len(), (0, 0, [0.0; 3]));
-        for &e in &self.extras {
-            let at = &mut self.shell_ends[e.0 as usize];
-            self.sorted_extras[*at] = e;
-            *at += 1;
-        }
-        // `shell_ends[k]` is now where shell k's extras end.
+        self.sort_extras_by_shell();
         let mut next_extra = 0;
         let mut k = 0u32;
         while !self.rays.is_empty() || next_extra < self.sorted_extras.len() {
@@ -527,21 +508,26 @@ impl TrainingBuilder {
             // Rays with a regular sample in this shell (shell 0 has none). (Dropping the others
             // in the pass that places the samples, writing each kept ray back, made the dense
             // drive's training 1 ms slower.)
-            if k > 0 {
+            let rays: &[FreeRay] = if k > 0 {
                 self.rays.retain(|r| d < r.len);
-            }
+                &self.rays
+            } else {
+                &[]
+            };
             let end = self.shell_ends.get(k as usize).copied().unwrap_or(next_extra);
+            let extras = &self.sorted_extras[next_extra..end];
+            next_extra = end;
+            // The ray number of this shell's extra `j` (past the last: after every ray), kept
+            // for the next extra rather than looked up for every ray.
+            let order_of = |j: usize| extras.get(j).map_or(u32::MAX, |e| e.order);
+            let (mut j, mut next_order) = (0, order_of(0));
             self.samples.clear();
-            // The ray number of the next extra sample of this shell (none: past every ray).
-            let order_at =
-                |i: usize, extras: &[(u32, u32, [f64; 3])]| if i < end { extras[i].1 } else { u32::MAX };
-            let mut next_order = order_at(next_extra, &self.sorted_extras);
-            for r in self.rays.iter().filter(|_| k > 0) {
+            for r in rays {
                 // Extras of earlier rays first; a ray's own extra comes after its regular samples.
                 while next_order < r.order {
-                    self.samples.push(self.sorted_extras[next_extra].2);
-                    next_extra += 1;
-                    next_order = order_at(next_extra, &self.sorted_extras);
+                    self.samples.push(extras[j].p);
+                    j += 1;
+                    next_order = order_of(j);
                 }
                 let p = along(o, r.n, d);
                 debug_assert_eq!(shell(p), k, "sample {d} m along {:?} left its shell", r.n);
@@ -551,14 +537,44 @@ impl TrainingBuilder {
                     self.samples.clear();
                 }
             }
-            self.samples.extend(self.sorted_extras[next_extra..end].iter().map(|e| e.2));
-            next_extra = end;
+            self.samples.extend(extras[j..].iter().map(|e| e.p));
             self.frees.add_all::<false>(&self.samples, inv_ds);
             self.frees.append_centroids(&mut out.frees);
             self.frees.clear();
             k += 1;
         }
     }
+
+    /// `extras` into `sorted_extras` by shell, a stable counting sort (each shell's stay in ray
+    /// order); `shell_ends[k]` becomes where shell k's end.
+    fn sort_extras_by_shell(&mut self) {
+        let shells = self.extras.iter().map(|e| e.shell as usize + 1).max().unwrap_or(0);
+        self.shell_ends.clear();
+        self.shell_ends.resize(shells + 1, 0);
+        for e in &self.extras {
+            self.shell_ends[e.shell as usize + 1] += 1;
+        }
+        for i in 1..self.shell_ends.len() {
+            self.shell_ends[i] += self.shell_ends[i - 1];
+        }
+        // Each shell's start, moved on as its extras are placed: its end once they all are.
+        self.sorted_extras.clear();
+        self.sorted_extras.resize(self.extras.len(), Extra::default());
+        for &e in &self.extras {
+            let at = &mut self.shell_ends[e.shell as usize];
+            self.sorted_extras[*at] = e;
+            *at += 1;
+        }
+    }
+}
+
+/// A free sample placed by shell rather than by ray: a ray's extra one (`fr` short of its end)
+/// or the origin (ray number `u32::MAX`: after every ray).
+#[derive(Debug, Clone, Copy, Default)]
+struct Extra {
+    shell: u32,
+    order: u32,
+    p: [f64; 3],
 }
 
 /// A ray whose free samples [`TrainingBuilder`] has to place: its unit direction `n`, its
