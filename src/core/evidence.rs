@@ -625,6 +625,56 @@ pub(crate) fn floor_i64(v: f64) -> i64 {
     r - i64::from(t - ROUND_MAGIC > v)
 }
 
+/// Fractional bits of a [`SubPoint`]'s coordinates: the centre of sub-cell `k` of `n` (a power
+/// of two up to [`MAX_SUB_CELLS`](super::params::MAX_SUB_CELLS)) is `(2k + 1) / 2n` of a cell,
+/// a multiple of `2^-SUB_FRAC`.
+pub const SUB_FRAC: u32 = super::params::MAX_SUB_CELLS.trailing_zeros() + 1;
+
+/// A labelled training point at a sub-cell centre (true = hit): its coordinates in cell units
+/// as fixed point with [`SUB_FRAC`] fractional bits, exactly what [`to_cell_units`] gives for
+/// `sub_cells > 0`, in 16 bytes where a `([f64; 3], bool)` takes 32. The evidence path's
+/// passes over the points (bounds, bucketing, placing the windows) read and move half the
+/// bytes and find cells and sub-cells with shifts.
+pub type SubPoint = ([i32; 3], bool);
+
+/// [`labelled_cell_points`] as [`SubPoint`]s (`geo.sub_cells > 0`), replacing `out`; false
+/// (and `out` unusable) when some point lies 2^23 cells or more from the origin, beyond what
+/// the fixed point holds.
+pub fn labelled_sub_points(set: &TrainingSet, geo: &PairGeometry, out: &mut Vec<SubPoint>) -> bool {
+    use super::kernel::ROUND_MAGIC;
+    assert!(geo.sub_cells > 0, "sub-cell points need sub-cells");
+    let shift = geo.sub_cells.trailing_zeros();
+    let n = f64::from(geo.sub_cells);
+    // The farthest coordinate first (a loop of maxima, which vectorises), so that the loop
+    // making the points needs no test: below `limit` sub-cells every coordinate stays under
+    // 2^30 (and its cell under 2^23).
+    let limit = (1u64 << (30 - SUB_FRAC + shift)) as f64;
+    let farthest = |pts: &[[f64; 3]]| {
+        // Plain comparisons, not `f64::max` (whose NaN rules keep it from vectorising; the
+        // points are finite).
+        pts.iter().flatten().fold(0.0f64, |m, v| if v.abs() > m { v.abs() } else { m })
+    };
+    let far = farthest(&set.hits).max(farthest(&set.frees));
+    if !(far / geo.res_m * n + 1.0 < limit) {
+        return false;
+    }
+    // Sub-cell k's centre is k·step + half in units of 2^-SUB_FRAC cells: an integer below
+    // 2^30, exact in a double, whose low 32 bits after adding 1.5·2^52 are its two's
+    // complement (no saturating conversion, so this loop vectorises too).
+    let (step, half) = ((1u32 << (SUB_FRAC - shift)) as f64, (1u32 << (SUB_FRAC - shift - 1)) as f64);
+    let fixed = |v: f64| (floor_f64(v / geo.res_m * n) * step + half + ROUND_MAGIC).to_bits() as u32 as i32;
+    out.clear();
+    out.extend(set.hits.iter().map(|p| (p.map(fixed), true)));
+    out.extend(set.frees.iter().map(|p| (p.map(fixed), false)));
+    true
+}
+
+/// A [`SubPoint`]'s coordinates in cell units (exact).
+#[inline(always)]
+pub fn sub_point_cell_units(q: [i32; 3]) -> [f64; 3] {
+    q.map(|v| f64::from(v) / f64::from(1u32 << SUB_FRAC))
+}
+
 /// A training set as labelled points in cell units (hits first, `true`), replacing `out`.
 pub fn labelled_cell_points(set: &TrainingSet, geo: &PairGeometry, out: &mut Vec<([f64; 3], bool)>) {
     out.clear();
@@ -797,6 +847,25 @@ mod tests {
             let table = KernelTable::new();
             let fast = delta_cells(&Scatter::default().delta(&set, &geo, &table));
             prop_assert_eq!(fast, brute_cells(&set, &geo, &table));
+        }
+
+        /// The compact sub-cell points (what `delta` takes when it can) and `f64` cell points
+        /// give the same bits, and so does a set the compact points cannot hold (a point
+        /// 2^23 cells out).
+        #[test]
+        fn sub_points_and_cell_points_give_the_same_delta((pts, origin, res, ell, sub) in random_scan(), far in any::<bool>()) {
+            let params = MapParams { resolution_m: res, ell_m: ell, ds_resolution_m: res, ..Default::default() };
+            let mut set = TrainingBuilder::default().build(&pts, origin, &params);
+            if far {
+                set.frees.push([f64::from(1u32 << 23) * res, 0.0, 0.0]);
+            }
+            let geo = PairGeometry::new(res, ell, sub);
+            let table = KernelTable::new();
+            let mut labelled = Vec::new();
+            labelled_cell_points(&set, &geo, &mut labelled);
+            let compact = Scatter::default().delta(&set, &geo, &table);
+            let cells = Scatter::default().delta_of(&labelled, &geo, &table);
+            prop_assert_eq!(delta_cells(&compact), delta_cells(&cells));
         }
 
         /// Splitting the points across threads (partial deltas summed) gives the same bits.
@@ -1092,6 +1161,42 @@ mod tests {
             to_cell_units([0.123, -0.05, 7.0], &PairGeometry::new(0.1, 0.2, 0)),
             [0.123 / 0.1, -0.5, 70.0]
         );
+    }
+
+    /// Sub-cell points hold exactly the cell units `to_cell_units` gives, hits first, for every
+    /// sub-cell count, both signs and points on sub-cell and cell boundaries; a set with a point
+    /// beyond their fixed point's range is refused (the evidence path then takes `f64` points).
+    #[test]
+    fn sub_points_are_the_cell_points_in_fixed_point() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(6);
+        for n in [1u32, 2, 4, 8, 16, 32, 64] {
+            let geo = PairGeometry::new(0.1, 0.2, n);
+            let mut set = TrainingSet::default();
+            for i in 0..3_000 {
+                let p: [f64; 3] = std::array::from_fn(|_| match i % 4 {
+                    0 => rng.random_range(-1e5..1e5),
+                    1 => f64::from(rng.random_range(-1000..1000)) * 0.1 / f64::from(n),
+                    2 => rng.random_range(-1.0..1.0),
+                    _ => f64::from(rng.random_range(-3..3)) * 0.1,
+                });
+                if i % 2 == 0 { set.hits.push(p) } else { set.frees.push(p) }
+            }
+            let (mut subs, mut cells) = (Vec::new(), Vec::new());
+            assert!(labelled_sub_points(&set, &geo, &mut subs), "n = {n}");
+            labelled_cell_points(&set, &geo, &mut cells);
+            assert_eq!(subs.len(), cells.len());
+            for (&(q, hit), &(p, cell_hit)) in subs.iter().zip(&cells) {
+                assert_eq!(hit, cell_hit);
+                assert_eq!(sub_point_cell_units(q), p, "n = {n}");
+            }
+            // 2^23 cells (840 km at 0.1 m) is beyond the fixed point; just inside it is not.
+            let edge = f64::from(1u32 << 23) * 0.1;
+            set.frees.push([0.0, -(edge - 1.0), 0.0]);
+            assert!(labelled_sub_points(&set, &geo, &mut subs), "n = {n}");
+            set.frees.push([0.0, 0.0, edge]);
+            assert!(!labelled_sub_points(&set, &geo, &mut subs), "n = {n}");
+        }
     }
 
     /// The branch-free floors equal `f64::floor` at and around integers, halves and the ends of

@@ -32,7 +32,7 @@
 //! Bits equal the reference: every lane computes `(o − f)²` per axis and sums z, y, then x,
 //! exactly as [`pair_coord`](super::evidence::pair_coord).
 
-use super::evidence::{PairGeometry, floor_i32, split_point};
+use super::evidence::{PairGeometry, SUB_FRAC, SubPoint, floor_i32, split_point};
 use super::kernel::{FIXED_SHIFT, KernelTable, round_to_i64};
 use super::key::BLOCK_EDGE;
 use super::scatter::CellPoint;
@@ -312,6 +312,28 @@ impl Brick {
         }
         pts.len()
     }
+
+    /// [`Self::add_points`] for points at sub-cell centres given as [`SubPoint`]s, whose
+    /// windows are read from `windows`.
+    pub fn add_sub_points<const W: usize, const W3: usize>(
+        &mut self,
+        pts: &[SubPoint],
+        windows: &SnappedWindows,
+    ) -> usize {
+        let e = SB + 2 * W.div_ceil(2);
+        assert_eq!(e, self.edge, "a brick of width {W}'s edge");
+        assert_eq!(windows.brick_edge, e, "windows placed for another brick");
+        for (i, &(q, hit)) in pts.iter().enumerate() {
+            let (at, regions, window, cell) = windows.place_sub_point(q);
+            if !self.admit(usize::from(!hit), cell) {
+                return i;
+            }
+            let cells = if hit { &mut self.a } else { &mut self.b };
+            add_values::<W, W3>(windows.window::<W3>(window), cells, at, e);
+            self.note(hit, regions);
+        }
+        pts.len()
+    }
 }
 
 /// The first window offset along an axis for a point at offset `f` from its cell's centre.
@@ -419,10 +441,27 @@ impl SnappedWindows {
     #[inline(always)]
     pub(crate) fn place(&self, p: [f64; 3]) -> (usize, u64, usize, usize) {
         let n = f64::from(1u32 << self.shift);
-        let (mut at, mut regions, mut window, mut cell) = (0usize, u64::MAX, 0usize, 0usize);
-        for a in 0..3 {
+        let sub: [i64; 3] = std::array::from_fn(|a| {
             let sub = round_to_i64(p[a] * n - 0.5);
             debug_assert!((sub as f64 + 0.5) / n == p[a], "point not at a sub-cell centre: {p:?}");
+            sub
+        });
+        self.place_sub(sub)
+    }
+
+    /// [`Self::place`] for a [`SubPoint`]'s coordinates (whose sub-cell index per axis is
+    /// `floor(q / 2^(SUB_FRAC − shift))`, a shift).
+    #[inline(always)]
+    pub(crate) fn place_sub_point(&self, q: [i32; 3]) -> (usize, u64, usize, usize) {
+        self.place_sub(q.map(|v| i64::from(v >> (SUB_FRAC - self.shift))))
+    }
+
+    /// [`Self::place`] from the point's sub-cell index per axis, `floor(p·n)`.
+    #[inline(always)]
+    fn place_sub(&self, sub: [i64; 3]) -> (usize, u64, usize, usize) {
+        let (mut at, mut regions, mut window, mut cell) = (0usize, u64::MAX, 0usize, 0usize);
+        for a in 0..3 {
+            let sub = sub[a];
             let place = self.places[(sub & (((SB as i64) << self.shift) - 1)) as usize][a];
             at += place.step as usize;
             regions &= place.spread;
