@@ -645,28 +645,30 @@ pub fn labelled_sub_points(set: &TrainingSet, geo: &PairGeometry, out: &mut Vec<
     assert!(geo.sub_cells > 0, "sub-cell points need sub-cells");
     let shift = geo.sub_cells.trailing_zeros();
     let n = f64::from(geo.sub_cells);
-    // The farthest coordinate first (a loop of maxima, which vectorises), so that the loop
-    // making the points needs no test: below `limit` sub-cells every coordinate stays under
-    // 2^30 (and its cell under 2^23).
+    // Sub-cell k's centre is k·step + half in units of 2^-SUB_FRAC cells: an integer, exact in
+    // a double, whose low 32 bits after adding 1.5·2^52 are its two's complement (no
+    // saturating conversion, so the loop vectorises). Below `limit` sub-cells every coordinate
+    // stays under 2^30 (and its cell under 2^23); the farthest is tested once at the end (one
+    // pass over the points: a dense scan's do not fit the caches), and a point beyond it
+    // leaves `out` unusable.
     let limit = (1u64 << (30 - SUB_FRAC + shift)) as f64;
-    let farthest = |pts: &[[f64; 3]]| {
-        // Plain comparisons, not `f64::max` (whose NaN rules keep it from vectorising; the
-        // points are finite).
-        pts.iter().flatten().fold(0.0f64, |m, v| if v.abs() > m { v.abs() } else { m })
-    };
-    let far = farthest(&set.hits).max(farthest(&set.frees));
-    if !(far / geo.res_m * n + 1.0 < limit) {
-        return false;
-    }
-    // Sub-cell k's centre is k·step + half in units of 2^-SUB_FRAC cells: an integer below
-    // 2^30, exact in a double, whose low 32 bits after adding 1.5·2^52 are its two's
-    // complement (no saturating conversion, so this loop vectorises too).
     let (step, half) = ((1u32 << (SUB_FRAC - shift)) as f64, (1u32 << (SUB_FRAC - shift - 1)) as f64);
-    let fixed = |v: f64| (floor_f64(v / geo.res_m * n) * step + half + ROUND_MAGIC).to_bits() as u32 as i32;
+    let res = geo.res_m;
+    let mut far = [0.0f64; 3];
     out.clear();
-    out.extend(set.hits.iter().map(|p| (p.map(fixed), true)));
-    out.extend(set.frees.iter().map(|p| (p.map(fixed), false)));
-    true
+    out.reserve(set.len());
+    for (points, hit) in [(&set.hits, true), (&set.frees, false)] {
+        for p in points {
+            // As `to_cell_units`: cells, then times n, then the floor.
+            let k = p.map(|v| v / res * n);
+            for a in 0..3 {
+                // A plain comparison, not `f64::max` (whose NaN rules cost instructions).
+                far[a] = if k[a].abs() > far[a] { k[a].abs() } else { far[a] };
+            }
+            out.push((k.map(|v| (floor_f64(v) * step + half + ROUND_MAGIC).to_bits() as u32 as i32), hit));
+        }
+    }
+    far.iter().all(|&f| f + 1.0 < limit)
 }
 
 /// A [`SubPoint`]'s coordinates in cell units (exact).
