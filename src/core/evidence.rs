@@ -653,10 +653,10 @@ pub fn labelled_sub_points(set: &TrainingSet, geo: &PairGeometry, out: &mut Vec<
     let n = f64::from(geo.sub_cells);
     // Sub-cell k's centre is k·step + half in units of 2^-SUB_FRAC cells: an integer, exact in
     // a double, whose low 32 bits after adding 1.5·2^52 are its two's complement (no
-    // saturating conversion, so the loop vectorises). Below `limit` sub-cells every coordinate
-    // stays under 2^30 (and its cell under 2^23); the farthest is tested once at the end (one
-    // pass over the points: a dense scan's do not fit the caches), and a point beyond it
-    // leaves `out` unusable.
+    // saturating conversion, with its tests for NaN and overflow). Below `limit` sub-cells
+    // every coordinate stays under 2^30 (and its cell under 2^23); the farthest is tested
+    // once at the end (one pass over the points: a dense scan's do not fit the caches), and a
+    // point beyond it leaves `out` unusable.
     let limit = (1u64 << (30 - SUB_FRAC + shift)) as f64;
     let (step, half) = ((1u32 << (SUB_FRAC - shift)) as f64, (1u32 << (SUB_FRAC - shift - 1)) as f64);
     let res = geo.res_m;

@@ -97,8 +97,9 @@
 //! (cell units, bounds, bucketing, placing) waited on memory. Points at sub-cell centres now
 //! go through as [`SubPoint`]s, 16 bytes of fixed point instead of 32 of `f64`, with cells and
 //! sub-cells found by shifts: evidence 16.5–17.5 → 15.6–16.1 ms per scan at the minima of
-//! alternated runs (means 17.5 → 16.1 and 18.7 → 17.3 in two sets). The sample scans' count
-//! stayed at 267.7 → 267.4 M instructions (48 scans): their points sit in L1 either way.
+//! alternated runs (means 17.5 → 16.1 and 18.7 → 17.3 in two sets). The sample scans'
+//! instructions stayed level (267.7 → 268.1 M over 48 scans) and their evidence still got
+//! faster: 0.284–0.290 → 0.262–0.278 ms, three alternations of `--repeat 200`.
 
 use super::evidence::{
     BlockEvidence, DeltaBlock, PairGeometry, RowMask, SUB_FRAC, ScanDelta, SubPoint, TakenBlock, split_point,
@@ -571,8 +572,8 @@ impl Scatter {
     }
 
     /// Counting sort of the points by the slot of the bucket (`2^shift` cells a side) of their
-    /// cell, into `cells_sorted` (so a bucket is one contiguous run, from `starts[s]` to
-    /// `starts[s + 1]`); `lo`, `hi` are the bucket bounds.
+    /// cell, into the buffer of their type ([`ScanPoint::sorted`]), where a bucket is one
+    /// contiguous run, from `starts[s]` to `starts[s + 1]`; `lo`, `hi` are the bucket bounds.
     fn bucket<P: ScanPoint>(&mut self, pts: &[P], lo: [i32; 3], hi: [i32; 3], shift: u32) {
         self.grid.reset(lo, hi);
         let n_slots = self.grid.slots.len();
