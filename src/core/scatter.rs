@@ -236,6 +236,8 @@ pub struct Scatter {
     /// each bucket while sorting.
     starts: Vec<u32>,
     next: Vec<u32>,
+    /// The same for the second half of the points (see [`Self::bucket`]).
+    next_b: Vec<u32>,
     /// The slots of the bucket grid in the order the window path visits them.
     order: Vec<u32>,
     /// Per bucket: delta-block index of each neighbour offset ((2M+1)³ entries, M = ⌈R/B⌉).
@@ -591,25 +593,52 @@ impl Scatter {
         self.bucket_of.clear();
         let grid = &self.grid;
         self.bucket_of.extend(pts.iter().map(|p| grid.index(p.cell().map(|v| v >> shift)) as u32));
-        for &s in &self.bucket_of {
-            self.starts[s as usize + 1] += 1;
-        }
-        for s in 0..n_slots {
-            self.starts[s + 1] += self.starts[s];
-        }
+        // The two halves of the points counted and placed side by side, each with counters of
+        // its own: neighbouring points mostly share a bucket, and with one set of counters
+        // every count and every place waited for the previous one's store (the increment of a
+        // place was 29% of the sort in `perf`). Dense 64-beam evidence, eight alternated runs
+        // (2026-12-05, fifth session): 15.2–19.0 (median 15.5) → 14.6–15.5 (14.8) ms per scan.
+        let half = pts.len() / 2;
         // Every place is written below (the sort is a permutation), so what a previous call
         // left there needs no zeroing.
         let mut sorted = std::mem::take(P::sorted(self));
         sorted.resize(pts.len(), P::default());
+        let (first, second) = self.bucket_of.split_at(half);
+        let mut counts_b = std::mem::take(&mut self.next_b);
+        counts_b.clear();
+        counts_b.resize(n_slots, 0);
+        for (&s, &t) in first.iter().zip(second) {
+            self.starts[s as usize + 1] += 1;
+            counts_b[t as usize] += 1;
+        }
+        if let Some(&t) = second.get(half) {
+            counts_b[t as usize] += 1;
+        }
+        // Bucket s: the first half's points from `starts[s]`, then the second half's from
+        // `next_b[s]` (so a bucket keeps the points' order).
+        for s in 0..n_slots {
+            let (a, b) = (self.starts[s + 1], counts_b[s]);
+            counts_b[s] = self.starts[s] + a;
+            self.starts[s + 1] = self.starts[s] + a + b;
+        }
+        let mut next_b = counts_b;
         let next = &mut self.next;
         next.clear();
         next.extend_from_slice(&self.starts[..n_slots]);
-        for (&s, &point) in self.bucket_of.iter().zip(pts) {
+        let (pts_a, pts_b) = pts.split_at(half);
+        for (((&s, &t), &p), &q) in first.iter().zip(second).zip(pts_a).zip(pts_b) {
             let at = &mut next[s as usize];
-            sorted[*at as usize] = point;
+            sorted[*at as usize] = p;
+            *at += 1;
+            let at = &mut next_b[t as usize];
+            sorted[*at as usize] = q;
             *at += 1;
         }
+        if let (Some(&t), Some(&q)) = (second.get(half), pts_b.get(half)) {
+            sorted[next_b[t as usize] as usize] = q;
+        }
         *P::sorted(self) = sorted;
+        self.next_b = next_b;
     }
 }
 
