@@ -89,7 +89,7 @@ impl TrainingSet {
 /// vectorises: 283.4 → 279.4 M instructions over 48 sample scans (callgrind), training
 /// 0.153–0.158 → 0.150–0.153 ms per scan (four alternated runs, a calm host).
 #[derive(Debug, Default)]
-pub struct VoxelCentroids<S: TableSlot = Slot> {
+pub(crate) struct VoxelCentroids<S: TableSlot = Slot> {
     /// The open-addressing table: the voxel key and its index into `sums` + 1 (0 = empty),
     /// side by side, so a probe is one load.
     slots: Vec<S>,
@@ -108,7 +108,7 @@ pub struct VoxelCentroids<S: TableSlot = Slot> {
 const EMPTY_SUM: ([f64; 3], u32) = ([-0.0; 3], 0);
 
 /// A slot of a [`VoxelCentroids`] table, and the key it stores of a voxel.
-pub trait TableSlot: Copy + Default + std::fmt::Debug {
+pub(crate) trait TableSlot: Copy + Default + std::fmt::Debug {
     /// The slot of voxel `key` (a key of this slot type) whose sum is at `index − 1`.
     fn new(key: u64, index: u32) -> Self;
     /// The voxel's index into the sums + 1, or 0 for an empty slot.
@@ -123,7 +123,7 @@ pub trait TableSlot: Copy + Default + std::fmt::Debug {
 
 /// A slot for any voxel of the key range: its whole 63-bit key and its index, 16 bytes.
 #[derive(Debug, Clone, Copy, Default)]
-pub struct Slot {
+pub(crate) struct Slot {
     key: u64,
     index: u32,
 }
@@ -157,7 +157,7 @@ impl TableSlot for Slot {
 /// The free samples of one shell take these (see [`TrainingBuilder::frees_by_shell`]): a
 /// shell lies within a scan's range of its origin.
 #[derive(Debug, Clone, Copy, Default)]
-pub struct CompactSlot(u64);
+pub(crate) struct CompactSlot(u64);
 
 /// Bits of each coordinate in a [`CompactSlot`]'s key (x, y, z).
 const COMPACT_BITS: [u32; 3] = [13, 13, 14];
@@ -190,7 +190,8 @@ impl TableSlot for CompactSlot {
         // Two's complement low bits of each floor: congruent coordinates share them, and
         // voxels less than 2^bits apart on an axis are not congruent.
         (0..3).fold(0, |key, a| {
-            (key << COMPACT_BITS[a]) | (super::evidence::floor_i64(s[a]) as u64 & ((1 << COMPACT_BITS[a]) - 1))
+            (key << COMPACT_BITS[a])
+                | (super::evidence::floor_i64(s[a]) as u64 & ((1 << COMPACT_BITS[a]) - 1))
         })
     }
 }
