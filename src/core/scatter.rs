@@ -604,24 +604,24 @@ impl Scatter {
         let mut sorted = std::mem::take(P::sorted(self));
         sorted.resize(pts.len(), P::default());
         let (first, second) = self.bucket_of.split_at(half);
-        let mut counts_b = std::mem::take(&mut self.next_b);
-        counts_b.clear();
-        counts_b.resize(n_slots, 0);
+        // The second half's counts, turned into its places below.
+        let mut next_b = std::mem::take(&mut self.next_b);
+        next_b.clear();
+        next_b.resize(n_slots, 0);
         for (&s, &t) in first.iter().zip(second) {
             self.starts[s as usize + 1] += 1;
-            counts_b[t as usize] += 1;
+            next_b[t as usize] += 1;
         }
         if let Some(&t) = second.get(half) {
-            counts_b[t as usize] += 1;
+            next_b[t as usize] += 1;
         }
         // Bucket s: the first half's points from `starts[s]`, then the second half's from
         // `next_b[s]` (so a bucket keeps the points' order).
         for s in 0..n_slots {
-            let (a, b) = (self.starts[s + 1], counts_b[s]);
-            counts_b[s] = self.starts[s] + a;
+            let (a, b) = (self.starts[s + 1], next_b[s]);
+            next_b[s] = self.starts[s] + a;
             self.starts[s + 1] = self.starts[s] + a + b;
         }
-        let mut next_b = counts_b;
         let next = &mut self.next;
         next.clear();
         next.extend_from_slice(&self.starts[..n_slots]);

@@ -159,19 +159,19 @@ impl TableSlot for Slot {
 #[derive(Debug, Clone, Copy, Default)]
 pub(crate) struct CompactSlot(u64);
 
-/// Bits of each coordinate in a [`CompactSlot`]'s key (x, y, z).
+/// Bits of each coordinate in a [`CompactSlot`]'s key (x, y, z), and of its index: 64 in all.
 const COMPACT_BITS: [u32; 3] = [13, 13, 14];
-/// Voxels per axis within which [`CompactSlot`] keys differ: the fewest a field tells apart.
-const COMPACT_SPAN: f64 = 8192.0;
-/// Bits of a [`CompactSlot`]'s index.
-const COMPACT_INDEX_BITS: u32 = 24;
+const COMPACT_INDEX_BITS: u32 = 64 - (COMPACT_BITS[0] + COMPACT_BITS[1] + COMPACT_BITS[2]);
+/// Voxels per axis within which [`CompactSlot`] keys differ: the fewest a field tells apart
+/// (x's, as few as y's).
+const COMPACT_SPAN: f64 = (1u64 << COMPACT_BITS[0]) as f64;
 /// Voxels a table of [`CompactSlot`]s can hold (their index + 1 must fit its bits).
 const COMPACT_VOXELS: usize = (1 << COMPACT_INDEX_BITS) - 2;
 
 impl TableSlot for CompactSlot {
     #[inline(always)]
     fn new(key: u64, index: u32) -> Self {
-        debug_assert!(index < 1 << COMPACT_INDEX_BITS && key < 1 << 40);
+        debug_assert!(index < 1 << COMPACT_INDEX_BITS && key < 1 << (64 - COMPACT_INDEX_BITS));
         CompactSlot(key << COMPACT_INDEX_BITS | u64::from(index))
     }
 
