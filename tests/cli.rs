@@ -199,6 +199,17 @@ fn check_bench(json: &str, scans: f64, threads: f64) {
     assert_eq!(json_number(json, "scans"), scans, "{json}");
     assert_eq!(json_number(json, "repeat"), 1.0, "{json}");
     assert_eq!(json_number(json, "threads"), threads, "{json}");
+    // The training points per scan: the fewest and the most bracket the mean, and the time per
+    // training point is that of the scans' median order of magnitude (every scan has some).
+    let (lo, mean, hi) = (
+        json_number(json, "training_points_per_scan_min"),
+        json_number(json, "training_points_per_scan_mean"),
+        json_number(json, "training_points_per_scan_max"),
+    );
+    assert!(0.0 < lo && lo <= mean && mean <= hi, "{lo} ≤ {mean} ≤ {hi} in {json}");
+    let ns = json_number(json, "ns_per_training_point");
+    let per_scan_ns = json_number(json, "per_scan_ms_median") * 1e6;
+    assert!(ns > 0.0 && ns * lo <= 10.0 * per_scan_ns && ns * hi >= 0.1 * per_scan_ns, "{ns} ns in {json}");
 }
 
 #[test]

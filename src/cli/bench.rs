@@ -162,6 +162,11 @@ fn ingest(a: IngestArgs) -> Result<()> {
     let mut phases_ms: [Vec<f64>; 2] = Default::default();
     let mut merge_ms = Vec::new();
     let mut pairs_in = (0usize, 0usize);
+    // The fewest and most training points of a scan, and all scans' time per training point:
+    // a scan's cost follows its training points (how much free space its rays cross), not its
+    // raw points.
+    let mut train_range = (usize::MAX, 0usize);
+    let mut scan_ms_sum = 0.0;
     for pass in 0..=a.repeat.max(1) {
         let (wall_ms, timed, t_end) = ingest_pass(&mut workers, &scans, params, split);
         let solo_wall_ms = solo_workers.as_mut().map(|w| ingest_pass(w, &scans, params, split).0);
@@ -174,6 +179,8 @@ fn ingest(a: IngestArgs) -> Result<()> {
                 }
                 pairs_in.0 += n_train;
                 pairs_in.1 += 1;
+                train_range = (train_range.0.min(n_train), train_range.1.max(n_train));
+                scan_ms_sum += parts.iter().sum::<f64>();
             }
             let last = timed.iter().map(|t| t.3).max().unwrap_or(t_end);
             merge_ms.push((t_end - last).as_secs_f64() * 1e3);
@@ -185,6 +192,8 @@ fn ingest(a: IngestArgs) -> Result<()> {
     let phase = [percentile(&mut train_ms, 0.5), percentile(&mut scatter_ms, 0.5)];
     let merge = percentile(&mut merge_ms, 0.5);
     let training_points_mean = pairs_in.0 as f64 / pairs_in.1.max(1) as f64;
+    let ns_per_training_point = scan_ms_sum * 1e6 / pairs_in.0.max(1) as f64;
+    let train_range = if pairs_in.1 == 0 { (0, 0) } else { train_range };
     let points: usize = scans.iter().map(|s| s.points_world.len()).sum();
     let med = percentile(&mut per_scan_ms, 0.5);
     let p90 = percentile(&mut per_scan_ms, 0.9);
@@ -204,6 +213,8 @@ fn ingest(a: IngestArgs) -> Result<()> {
             "raw_points": points, "points_per_s": points_per_s,
             "range_mode": params.range_mode.as_str(),
             "training_points_per_scan_mean": training_points_mean,
+            "training_points_per_scan_min": train_range.0, "training_points_per_scan_max": train_range.1,
+            "ns_per_training_point": ns_per_training_point,
             "phase_ms_median": {"training": phase[0], "evidence": phase[1]},
             "merge_ms_median": merge,
         });
@@ -216,12 +227,15 @@ fn ingest(a: IngestArgs) -> Result<()> {
         println!(
             "ingest {source}: {} scans × {} passes, {threads} worker(s) × {split} thread(s) per scan: per scan median {med:.3} ms, p90 {p90:.3} ms; \
              all scans median {total_med:.2} ms ({:.2} M raw points/s); per-scan medians: training {:.3} ms, \
-             evidence {:.3} ms ({training_points_mean:.0} training points per scan); adding the workers' maps {merge:.3} ms per pass",
+             evidence {:.3} ms ({training_points_mean:.0} training points per scan, {}–{}; {ns_per_training_point:.1} ns per training point); \
+             adding the workers' maps {merge:.3} ms per pass",
             scans.len(),
             a.repeat.max(1),
             points_per_s / 1e6,
             phase[0],
             phase[1],
+            train_range.0,
+            train_range.1,
         );
         if let Some((solo_med, speedup)) = solo {
             println!(
