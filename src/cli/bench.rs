@@ -162,11 +162,10 @@ fn ingest(a: IngestArgs) -> Result<()> {
     let mut phases_ms: [Vec<f64>; 2] = Default::default();
     let mut merge_ms = Vec::new();
     let mut pairs_in = (0usize, 0usize);
-    // The fewest and most training points of a scan, and all scans' time per training point:
-    // a scan's cost follows its training points (how much free space its rays cross), not its
-    // raw points.
+    // The fewest and most training points of a scan (with all scans' time per training point
+    // below): a scan's cost follows its training points (how much free space its rays cross),
+    // not its raw points.
     let mut train_range = (usize::MAX, 0usize);
-    let mut scan_ms_sum = 0.0;
     for pass in 0..=a.repeat.max(1) {
         let (wall_ms, timed, t_end) = ingest_pass(&mut workers, &scans, params, split);
         let solo_wall_ms = solo_workers.as_mut().map(|w| ingest_pass(w, &scans, params, split).0);
@@ -180,7 +179,6 @@ fn ingest(a: IngestArgs) -> Result<()> {
                 pairs_in.0 += n_train;
                 pairs_in.1 += 1;
                 train_range = (train_range.0.min(n_train), train_range.1.max(n_train));
-                scan_ms_sum += parts.iter().sum::<f64>();
             }
             let last = timed.iter().map(|t| t.3).max().unwrap_or(t_end);
             merge_ms.push((t_end - last).as_secs_f64() * 1e3);
@@ -192,7 +190,7 @@ fn ingest(a: IngestArgs) -> Result<()> {
     let phase = [percentile(&mut train_ms, 0.5), percentile(&mut scatter_ms, 0.5)];
     let merge = percentile(&mut merge_ms, 0.5);
     let training_points_mean = pairs_in.0 as f64 / pairs_in.1.max(1) as f64;
-    let ns_per_training_point = scan_ms_sum * 1e6 / pairs_in.0.max(1) as f64;
+    let ns_per_training_point = per_scan_ms.iter().sum::<f64>() * 1e6 / pairs_in.0.max(1) as f64;
     let train_range = if pairs_in.1 == 0 { (0, 0) } else { train_range };
     let points: usize = scans.iter().map(|s| s.points_world.len()).sum();
     let med = percentile(&mut per_scan_ms, 0.5);
