@@ -648,6 +648,10 @@ impl TrainingBuilder {
             let extras = &self.sorted_extras[next_extra..end];
             next_extra = end;
             self.samples.clear();
+            debug_assert!(
+                rays.iter().all(|r| shell(along(o, r.n, d)) == k),
+                "a sample {d} m along a ray left its shell"
+            );
             // Each extra comes after the regular samples of the rays up to its own (by ray
             // number), before those of the rays after it: the rays between two extras go in as
             // one run.
@@ -658,15 +662,10 @@ impl TrainingBuilder {
                     upto += 1;
                 }
                 place_along(&mut self.samples, &rays[from..upto], o, d, table, inv_ds);
-                debug_assert!(
-                    rays[from..upto].iter().all(|r| shell(along(o, r.n, d)) == k),
-                    "a sample {d} m along a ray left its shell"
-                );
                 self.samples.push(e.p);
                 from = upto;
             }
             place_along(&mut self.samples, &rays[from..], o, d, table, inv_ds);
-            debug_assert!(rays[from..].iter().all(|r| shell(along(o, r.n, d)) == k));
             table.add_all::<false>(&self.samples, inv_ds);
             table.append_centroids(&mut out.frees);
             table.clear();
