@@ -27,6 +27,18 @@ use std::sync::mpsc::{self, Receiver, Sender, TryRecvError};
 pub struct Workers {
     first: Integrator,
     helpers: Vec<Helper>,
+    /// Per helper, the blocks of its last map whose evidence was added into the sink's: freed
+    /// by that helper at the start of the next batch, while the calling thread integrates,
+    /// rather than by the calling thread after the last scan, where the pass waits for it.
+    /// They hold memory until then (the sample scans: ~400 blocks of 4 KiB).
+    ///
+    /// Kept (2026-12-05, seventh session, `bgkmap bench ingest S/*.pcd --repeat 300 --threads
+    /// 2`, six alternated runs on a busy host): adding the helper's map after the last scan took
+    /// 0.143–0.193 ms per pass (median 0.162) against 0.148–0.284 (0.204), and two workers were
+    /// 1.64–1.75× one (median 1.71) against 1.41–1.70× (1.68). The calling thread's puts took
+    /// ~35 µs with the frees and ~15 without. Freeing them in the jobs that add the shares
+    /// instead was slower (0.19–0.28 ms): both threads then free into the helper's heap at once.
+    spent: Vec<Vec<Arc<BlockEvidence>>>,
 }
 
 /// A job for a helper thread, run with the thread's integrator.
@@ -46,8 +58,9 @@ impl Workers {
     /// `threads` integrators for maps of `params` (at least one); every one beyond the first
     /// starts a thread.
     pub fn new(params: MapParams, threads: usize) -> Self {
-        let helpers = (1..threads.max(1)).map(|i| Helper::start(params, i)).collect();
-        Self { first: Integrator::new(params), helpers }
+        let helpers: Vec<_> = (1..threads.max(1)).map(|i| Helper::start(params, i)).collect();
+        let spent = helpers.iter().map(|_| Vec::new()).collect();
+        Self { first: Integrator::new(params), helpers, spent }
     }
 
     /// Integrators in the pool (threads, counting the caller's).
@@ -187,7 +200,7 @@ where
     K: BlockSink,
     E: Send,
 {
-    let Workers { first, helpers } = workers;
+    let Workers { first, helpers, spent } = workers;
     let n = (1 + helpers.len()).min(scans.len());
     if n <= 1 {
         return scans.iter().try_for_each(|s| add(first, s, sink));
@@ -205,10 +218,11 @@ where
     let mut batch = Batch::new(helpers);
     let (map_tx, map_rx) = mpsc::channel();
     for h in 0..helpers.len() {
-        let (run, map_tx) = (&run, map_tx.clone());
+        let (run, map_tx, spent) = (&run, map_tx.clone(), std::mem::take(&mut spent[h]));
         batch.start(
             h,
             Box::new(move |integ: &mut Integrator| {
+                drop(spent);
                 let mut own = EvidenceMap::new(params);
                 let done = run(integ, &mut own);
                 let _ = map_tx.send((h, own, done));
@@ -232,8 +246,8 @@ where
         batch.finish();
         return Err(e);
     }
-    for map in maps {
-        add_map_on_all_threads(map, sink, &mut batch);
+    for (map, spent) in maps.into_iter().zip(spent.iter_mut()) {
+        add_map_on_all_threads(map, sink, &mut batch, spent);
     }
     batch.finish();
     Ok(())
@@ -251,10 +265,17 @@ fn add_block_pairs(pairs: &mut [BlockPair]) {
 }
 
 /// Adds a helper's `map` into `sink`: blocks `sink` lacks are moved in, the others are added in
-/// equal shares on the calling thread and every helper of `batch`. On the sample scans two
-/// workers' maps share ~750 blocks per pass; added on the calling thread alone they took
-/// 0.40–0.48 ms after the last scan, in shares 0.28–0.34 ms (four alternated runs).
-fn add_map_on_all_threads<K: BlockSink + ?Sized>(map: EvidenceMap, sink: &mut K, batch: &mut Batch<'_, '_>) {
+/// equal shares on the calling thread and every helper of `batch`; the helper's blocks left
+/// over go to `spent` (see [`Workers`]). On the sample scans two workers' maps share ~750
+/// blocks per pass; added on the calling thread alone they took 0.40–0.48 ms after the last
+/// scan, in shares 0.28–0.34 ms (four alternated runs). (2026-12-05, seventh session: the
+/// helper's map holds ~760 blocks, of which 380–410 are in the sink too.)
+fn add_map_on_all_threads<K: BlockSink + ?Sized>(
+    map: EvidenceMap,
+    sink: &mut K,
+    batch: &mut Batch<'_, '_>,
+    spent: &mut Vec<Arc<BlockEvidence>>,
+) {
     /// Below this many shared blocks (~0.5 µs each) handing shares out costs more than it saves.
     const MIN_PAIRS_TO_SHARE: usize = 64;
     let mut pairs = Vec::new();
@@ -287,8 +308,9 @@ fn add_map_on_all_threads<K: BlockSink + ?Sized>(map: EvidenceMap, sink: &mut K,
         // panic on.
         pairs.extend(receive_soon(&rx).into_iter().flatten());
     }
-    for (key, sum, _) in pairs {
+    for (key, sum, theirs) in pairs {
         sink.put_block(key, sum);
+        spent.push(theirs);
     }
 }
 
