@@ -781,17 +781,25 @@ fn along(o: [f64; 3], n: [f64; 3], d: f64) -> [f64; 3] {
 
 /// Appends the free samples along the unit direction `n` from `o` to `out`: `fr, 2fr, … <
 /// ray_len`, plus `ray_len − fr`.
+///
+/// The regular samples go in as one run: their number first (from an estimate, corrected by
+/// the same test `i·fr < ray_len` a sample-by-sample loop would stop on), then one `extend`.
+/// (2026-12-06, seventh session: training 69.7 → 67.7 M instructions over four passes of the
+/// 12 sample scans, callgrind; per-scan training 0.131–0.136 against 0.128–0.135 ms over five
+/// alternated runs, a difference the noise does not resolve.)
 fn free_samples(out: &mut Vec<[f64; 3]>, o: [f64; 3], n: [f64; 3], ray_len: f64, fr: f64) {
     let at = |d: f64| along(o, n, d);
-    let mut i = 1u32;
-    loop {
-        let d = f64::from(i) * fr;
-        if !(d < ray_len) {
-            break;
-        }
-        out.push(at(d));
-        i += 1;
+    let below = |i: u32| f64::from(i) * fr < ray_len;
+    // Saturating: NaN gives 0, anything past u32::MAX the maximum. Never too low: if
+    // `(count + 1)·fr < ray_len` held in floating point, it would hold exactly too (rounding
+    // cannot carry a product at or past `ray_len` below it, as `ray_len` is a double), and then
+    // `ray_len / fr` would round to at least `count + 1`.
+    let mut count = (ray_len / fr) as u32;
+    while count > 0 && !below(count) {
+        count -= 1;
     }
+    debug_assert!(count == u32::MAX || !below(count + 1), "{ray_len} / {fr}: too few samples");
+    out.extend((1..=count).map(|i| at(f64::from(i) * fr)));
     if ray_len > fr {
         out.push(at(ray_len - fr));
     }
@@ -803,6 +811,42 @@ mod tests {
 
     fn params(max_range_m: f64, mode: RangeMode) -> MapParams {
         MapParams { max_range_m, range_mode: mode, ..Default::default() }
+    }
+
+    #[test]
+    fn free_samples_stop_where_a_sample_by_sample_loop_does() {
+        // Lengths at, just below and just above multiples of the spacing (where the count's
+        // estimate and the test `i·fr < len` can disagree), zero, tiny, and not a number.
+        let plain = |o: [f64; 3], n: [f64; 3], len: f64, fr: f64| {
+            let mut out = Vec::new();
+            let mut i = 1u32;
+            while f64::from(i) * fr < len {
+                out.push(along(o, n, f64::from(i) * fr));
+                i += 1;
+            }
+            if len > fr {
+                out.push(along(o, n, len - fr));
+            }
+            out
+        };
+        let (o, n) = ([1.0, -2.0, 0.5], [0.6, 0.0, 0.8]);
+        let mut cases = vec![0.0, 1e-300, f64::NAN, -1.0];
+        for fr in [0.5, 0.1, 0.3, 0.7] {
+            for k in 0..200 {
+                let len = f64::from(k) * fr;
+                cases.extend([len, len.next_down(), len.next_up(), len + 0.5 * fr]);
+            }
+            for &len in &cases {
+                let mut out = vec![[9.0; 3]];
+                free_samples(&mut out, o, n, len, fr);
+                let want = plain(o, n, len, fr);
+                assert_eq!(
+                    out[1..].iter().map(|p| p.map(f64::to_bits)).collect::<Vec<_>>(),
+                    want.iter().map(|p| p.map(f64::to_bits)).collect::<Vec<_>>(),
+                    "length {len:e}, spacing {fr}"
+                );
+            }
+        }
     }
 
     #[test]
