@@ -266,10 +266,10 @@ fn add_block_pairs(pairs: &mut [BlockPair]) {
 
 /// Adds a helper's `map` into `sink`: blocks `sink` lacks are moved in, the others are added in
 /// equal shares on the calling thread and every helper of `batch`; the helper's blocks left
-/// over go to `spent` (see [`Workers`]). On the sample scans two workers' maps share ~750
-/// blocks per pass; added on the calling thread alone they took 0.40–0.48 ms after the last
-/// scan, in shares 0.28–0.34 ms (four alternated runs). (2026-12-05, seventh session: the
-/// helper's map holds ~760 blocks, of which 380–410 are in the sink too.)
+/// over go to `spent` (see [`Workers`]). On the sample scans the helper's map holds ~760
+/// blocks per pass, of which 380–410 are the sink's too (counted 2026-12-05, seventh
+/// session); added on the calling thread alone they took 0.40–0.48 ms after the last scan, in
+/// shares 0.28–0.34 ms (four alternated runs).
 fn add_map_on_all_threads<K: BlockSink + ?Sized>(
     map: EvidenceMap,
     sink: &mut K,
