@@ -308,6 +308,7 @@ fn add_map_on_all_threads<K: BlockSink + ?Sized>(
         // panic on.
         pairs.extend(receive_soon(&rx).into_iter().flatten());
     }
+    spent.reserve(pairs.len());
     for (key, sum, theirs) in pairs {
         sink.put_block(key, sum);
         spent.push(theirs);
