@@ -98,14 +98,18 @@ pub(crate) struct VoxelCentroids<S: TableSlot = Slot> {
     /// The keys in first-occurrence order (the occupied slots, for [`Self::clear`]);
     /// `keys[len]` is scratch.
     keys: Vec<u64>,
-    /// Per voxel, the sum of its points and their number; `sums[len]` is always (once
-    /// allocated) [`EMPTY_SUM`], the entry the next new voxel adds its first point to.
-    sums: Vec<([f64; 3], u32)>,
+    /// Per voxel, the sum of its points and their number ([`Sum`]); `sums[len]` is always
+    /// (once allocated) [`EMPTY_SUM`], the entry the next new voxel adds its first point to.
+    sums: Vec<Sum>,
 }
+
+/// A voxel's sum of points (x, y, z) and, as a fourth lane, their number (a double, exact up
+/// to 2^53): one 4-lane add per point.
+type Sum = [f64; 4];
 
 /// What a voxel's sum starts from: −0 is the identity of floating-point addition (`x + −0 = x`
 /// for every `x`, −0 included), so adding a first point to it gives that point, bit for bit.
-const EMPTY_SUM: ([f64; 3], u32) = ([-0.0; 3], 0);
+const EMPTY_SUM: Sum = [-0.0, -0.0, -0.0, 0.0];
 
 /// A slot of a [`VoxelCentroids`] table, and the key it stores of a voxel.
 pub(crate) trait TableSlot: Copy + Default + std::fmt::Debug {
@@ -336,10 +340,7 @@ impl<S: TableSlot> VoxelCentroids<S> {
     }
 
     fn append_centroids(&self, out: &mut Vec<[f64; 3]>) {
-        out.extend(self.sums[..self.len].iter().map(|&(s, n)| {
-            let n = f64::from(n);
-            [s[0] / n, s[1] / n, s[2] / n]
-        }));
+        out.extend(self.sums[..self.len].iter().map(|s| [s[0] / s[3], s[1] / s[3], s[2] / s[3]]));
     }
 }
 
@@ -367,7 +368,7 @@ impl<S: TableSlot> VoxelCentroids<S> {
 #[allow(clippy::too_many_arguments)]
 fn insert<S: TableSlot>(
     slots: &mut [S],
-    sums: &mut [([f64; 3], u32)],
+    sums: &mut [Sum],
     keys: &mut [u64],
     len: usize,
     key: u64,
@@ -389,7 +390,7 @@ fn insert<S: TableSlot>(
     slots[i] = S::new(key, at as u32 + 1);
     keys[len] = key;
     let e = &mut sums[at];
-    *e = ([e.0[0] + p[0], e.0[1] + p[1], e.0[2] + p[2]], e.1 + 1);
+    *e = [e[0] + p[0], e[1] + p[1], e[2] + p[2], e[3] + 1.0];
     let len = len + usize::from(found == 0);
     sums[len] = EMPTY_SUM;
     len
@@ -472,6 +473,9 @@ pub struct TrainingBuilder {
 /// Points gathered before they go into a voxel table (a few rays' worth of free samples).
 const SAMPLE_BUFFER: usize = 1024;
 
+/// Hits whose rays [`TrainingBuilder::build_into`] measures at a time.
+const RAY_CHUNK: usize = 64;
+
 /// Free samples (about) from which a scan's go in shell by shell ([`FreeRay`]): 2^16, whose
 /// voxels, up to 72 bytes each in slots, sums and keys, would fill more than a 2 MB L2 cache
 /// in one table. With fewer, the scan's table stays in L2 anyway, and sorting each ray's extra
@@ -521,27 +525,34 @@ impl TrainingBuilder {
         let mut longest = 0.0f64;
         // The rays' total length, for the number of free samples.
         let mut samples = 0.0;
-        for &h in &self.centroids {
-            let v = [h[0] - o[0], h[1] - o[1], h[2] - o[2]];
-            let r = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
-            let len = if max_r > 0.0 && r > max_r {
-                out.beyond_range += 1;
-                match params.range_mode {
-                    RangeMode::Drop => continue,
-                    RangeMode::Truncate => max_r,
+        // Per chunk of hits, their offsets from the origin, lengths and directions first, in
+        // loops without branches, so the square roots and divisions go four to an instruction.
+        let mut vs = [[0.0f64; 3]; RAY_CHUNK];
+        let mut rs = [0.0f64; RAY_CHUNK];
+        for chunk in self.centroids.chunks(RAY_CHUNK) {
+            for ((v, r), h) in vs.iter_mut().zip(&mut rs).zip(chunk) {
+                *v = [h[0] - o[0], h[1] - o[1], h[2] - o[2]];
+                *r = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+            }
+            for (v, &r) in vs.iter_mut().zip(&rs) {
+                *v = [v[0] / r, v[1] / r, v[2] / r];
+            }
+            for ((&h, &n), &r) in chunk.iter().zip(&vs).zip(&rs) {
+                let len = if max_r > 0.0 && r > max_r {
+                    out.beyond_range += 1;
+                    match params.range_mode {
+                        RangeMode::Drop => continue,
+                        RangeMode::Truncate => max_r,
+                    }
+                } else {
+                    out.hits.push(h);
+                    r
+                };
+                if r > 0.0 {
+                    self.rays.push(FreeRay { n, len, order: self.rays.len() as u32 });
+                    longest = longest.max(len);
+                    samples += len;
                 }
-            } else {
-                out.hits.push(h);
-                r
-            };
-            if r > 0.0 {
-                self.rays.push(FreeRay {
-                    n: [v[0] / r, v[1] / r, v[2] / r],
-                    len,
-                    order: self.rays.len() as u32,
-                });
-                longest = longest.max(len);
-                samples += len;
             }
         }
         out.frees.clear();
