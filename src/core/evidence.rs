@@ -608,7 +608,7 @@ pub fn to_cell_units(p_m: [f64; 3], geo: &PairGeometry) -> [f64; 3] {
 /// vectorises: `(v + 1.5·2^52) − 1.5·2^52` is round(v), exactly, then one less where that
 /// rounded up.
 #[inline(always)]
-fn floor_f64(v: f64) -> f64 {
+pub(crate) fn floor_f64(v: f64) -> f64 {
     use super::kernel::ROUND_MAGIC;
     debug_assert!(v.abs() < (1u64 << 51) as f64, "floor of {v} out of range");
     let r = (v + ROUND_MAGIC) - ROUND_MAGIC;

@@ -17,7 +17,6 @@
 //! voxels; free voxels too, except that a large scan's go shell by shell (see `FreeRay`): their
 //! order carries no meaning (evidence sums are integers, the same in any order).
 
-use super::key::CellKey;
 use super::params::{MapParams, RangeMode};
 
 /// Labelled training points of one scan, in world metres.
@@ -634,12 +633,23 @@ impl TrainingBuilder {
         let shell = |p: [f64; 3]| shell_of(p, o, ds, inv_ds, fr);
         // Each ray's extra sample, and the origin after every ray.
         self.extras.clear();
-        for r in self.rays.iter().filter(|r| r.len > fr) {
-            let p = along(o, r.n, r.len - fr);
-            self.extras.push(Extra { shell: shell(p), order: r.order, p });
-        }
+        self.extras.extend(self.rays.iter().filter(|r| r.len > fr).map(|r| Extra {
+            shell: 0,
+            order: r.order,
+            p: along(o, r.n, r.len - fr),
+        }));
         if params.origin_as_free {
-            self.extras.push(Extra { shell: shell(o), order: u32::MAX, p: o });
+            self.extras.push(Extra { shell: 0, order: u32::MAX, p: o });
+        }
+        // Their shells by chunks, the square roots and divisions four to an instruction.
+        let mut d2 = [0.0f64; RAY_CHUNK];
+        for chunk in self.extras.chunks_mut(RAY_CHUNK) {
+            for (d, e) in d2.iter_mut().zip(chunk.iter()) {
+                *d = centre_distance_squared(e.p, o, ds, inv_ds);
+            }
+            for (e, &d) in chunk.iter_mut().zip(&d2) {
+                e.shell = shell_at(d, fr);
+            }
         }
         self.sort_extras_by_shell();
         let mut next_extra = 0;
@@ -753,14 +763,29 @@ fn shells_separate_voxels(ds: f64, fr: f64, extent: f64) -> bool {
     fr > 3f64.sqrt() * ds + 2.0 * (1e-6 * ds + 1e-9 * (extent + 1.0))
 }
 
-/// The shell of the voxel holding `p`: the distance of its centre from `o` in multiples of
-/// `fr`, rounded (a function of the voxel alone).
+/// The shell of the voxel holding `p` (inside the key range): the distance of its centre from
+/// `o` in multiples of `fr`, rounded (a function of the voxel alone).
 fn shell_of(p: [f64; 3], o: [f64; 3], ds: f64, inv_ds: f64, fr: f64) -> u32 {
-    // The voxel as the table keys it (`v · inv_ds`, floored); its key is in range here.
-    let c =
-        CellKey::from_cells(p.map(|v| v * inv_ds)).expect("a free sample inside the key range").centre(ds);
+    shell_at(centre_distance_squared(p, o, ds, inv_ds), fr)
+}
+
+/// The squared distance from `o` of the centre of the voxel holding `p` (inside the key range),
+/// without branches.
+#[inline(always)]
+fn centre_distance_squared(p: [f64; 3], o: [f64; 3], ds: f64, inv_ds: f64) -> f64 {
+    // The voxel as the table keys it (`v · inv_ds`, floored), and its centre as
+    // `CellKey::centre` gives it.
+    let c = p.map(|v| (super::evidence::floor_f64(v * inv_ds) + 0.5) * ds);
     let d = [c[0] - o[0], c[1] - o[1], c[2] - o[2]];
-    ((d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt() / fr + 0.5) as u32
+    d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+}
+
+/// [`shell_of`] from the squared distance of the voxel's centre.
+#[inline(always)]
+fn shell_at(distance_squared: f64, fr: f64) -> u32 {
+    // Through `i32`, which packed conversions have (a shell number is far below 2^31 inside
+    // the key range): the same number as `as u32`.
+    (distance_squared.sqrt() / fr + 0.5) as i32 as u32
 }
 
 /// Appends the sample `d` metres along each of `rays` to `samples`, handing the samples to
