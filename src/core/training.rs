@@ -509,6 +509,10 @@ impl TrainingBuilder {
         out.dropped_points = 0;
         out.beyond_range = 0;
         // A point that is not finite has no voxel key, so the key test drops it too.
+        // Tried and not kept (2026-12-06, eighth session): the hits in a table of
+        // `CompactSlot`s, without range tests, when a pass over the points found them all in
+        // range and within its span: dense training 11.1–11.8 → 11.8–12.4 ms per scan (14
+        // alternated runs, both orders), slower.
         for chunk in points_world.chunks(SAMPLE_BUFFER) {
             self.samples.clear();
             self.samples.extend(chunk.iter().map(|p| p.map(f64::from)));
