@@ -472,7 +472,9 @@ pub struct TrainingBuilder {
 /// Points gathered before they go into a voxel table (a few rays' worth of free samples).
 const SAMPLE_BUFFER: usize = 1024;
 
-/// Hits whose rays [`TrainingBuilder::build_into`] measures at a time.
+/// Items a loop of square roots and divisions takes at a time, so that they go four to an
+/// instruction: the hits whose rays [`TrainingBuilder::build_into`] measures, the extra samples
+/// whose shells [`TrainingBuilder::frees_by_shell`] finds.
 const RAY_CHUNK: usize = 64;
 
 /// Free samples (about) from which a scan's go in shell by shell ([`FreeRay`]): 2^16, whose
