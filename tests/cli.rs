@@ -207,6 +207,13 @@ fn check_bench(json: &str, scans: f64, threads: f64) {
         json_number(json, "training_points_per_scan_max"),
     );
     assert!(0.0 < lo && lo <= mean && mean <= hi, "{lo} ≤ {mean} ≤ {hi} in {json}");
+    // The wait at the end of a pass, for the workers out of scans: within the pass, and none on
+    // one worker (no other to wait for).
+    let (tail, total) = (json_number(json, "tail_ms_median"), json_number(json, "total_ms_median"));
+    assert!((0.0..=total).contains(&tail), "tail {tail} ms of a {total} ms pass in {json}");
+    if threads == 1.0 {
+        assert_eq!(tail, 0.0, "{json}");
+    }
     let ns = json_number(json, "ns_per_training_point");
     let per_scan_ns = json_number(json, "per_scan_ms_median") * 1e6;
     assert!(ns > 0.0 && ns * lo <= 10.0 * per_scan_ns && ns * hi >= 0.1 * per_scan_ns, "{ns} ns in {json}");
@@ -233,6 +240,16 @@ fn bench_ingest_json() {
     assert!(solo.is_finite() && solo > 0.0, "{json}");
     let speedup = json_number(&json, "speedup_vs_one_worker");
     assert!((speedup - solo / total).abs() <= 1e-9 * speedup, "{json}");
+    // Each worker's time per training point: two workers, each of the order of all scans'.
+    let workers: Vec<f64> = parse_json(&json)["per_worker_ns_per_training_point"]
+        .as_array()
+        .unwrap_or_else(|| panic!("no per-worker figures in {json}"))
+        .iter()
+        .map(|m| m.as_f64().expect("a number"))
+        .collect();
+    let ns = json_number(&json, "ns_per_training_point");
+    assert_eq!(workers.len(), 2, "{json}");
+    assert!(workers.iter().all(|&w| w > 0.0 && w < 10.0 * ns && ns < 10.0 * w), "{json}");
 }
 
 /// The demo serves on free loopback ports, streams its robot over gRPC, and (with `--exit`)

@@ -85,8 +85,16 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
     }
 }
 
-/// A scan's training points, training time, evidence time, and when it was done.
-type ScanTime = (usize, std::time::Duration, std::time::Duration, Instant);
+/// What [`timed_scan`] records of a scan.
+#[derive(Debug, Clone, Copy)]
+struct ScanTime {
+    training_points: usize,
+    training: std::time::Duration,
+    evidence: std::time::Duration,
+    /// When the scan was done, and on which worker's thread.
+    done: Instant,
+    thread: std::thread::ThreadId,
+}
 /// Every scan's, in the order they were done.
 type ScanTimes = std::sync::Mutex<Vec<ScanTime>>;
 
@@ -102,18 +110,28 @@ fn timed_scan<R>(
     let t1 = Instant::now();
     let out = evidence(integ);
     let t2 = Instant::now();
-    lock(timed).push((n_train, t1 - t0, t2 - t1, t2));
+    let thread = std::thread::current().id();
+    lock(timed).push(ScanTime {
+        training_points: n_train,
+        training: t1 - t0,
+        evidence: t2 - t1,
+        done: t2,
+        thread,
+    });
     out
 }
 
-/// One timed pass over `scans` into a fresh map: its wall time (ms), each scan's times, and
-/// when it ended.
-fn ingest_pass(
-    workers: &mut Workers,
-    scans: &[Scan],
-    params: MapParams,
-    split: usize,
-) -> (f64, Vec<ScanTime>, Instant) {
+/// What [`ingest_pass`] records of a pass: its wall time (ms), each scan's times, and when it
+/// started and ended.
+struct PassTime {
+    wall_ms: f64,
+    scans: Vec<ScanTime>,
+    start: Instant,
+    end: Instant,
+}
+
+/// One timed pass over `scans` into a fresh map.
+fn ingest_pass(workers: &mut Workers, scans: &[Scan], params: MapParams, split: usize) -> PassTime {
     let mut map = EvidenceMap::new(params);
     let timed: ScanTimes = std::sync::Mutex::new(Vec::with_capacity(scans.len()));
     let t_pass = Instant::now();
@@ -126,7 +144,7 @@ fn ingest_pass(
     }
     let t_end = Instant::now();
     let timed = timed.into_inner().unwrap_or_else(std::sync::PoisonError::into_inner);
-    ((t_end - t_pass).as_secs_f64() * 1e3, timed, t_end)
+    PassTime { wall_ms: (t_end - t_pass).as_secs_f64() * 1e3, scans: timed, start: t_pass, end: t_end }
 }
 
 fn ingest(a: IngestArgs) -> Result<()> {
@@ -155,11 +173,18 @@ fn ingest(a: IngestArgs) -> Result<()> {
     // between runs (two runs of one binary gave 1231 and 1884 scans/s on one worker).
     let mut solo_workers = (threads > 1).then(|| Workers::new(params, 1));
     let mut per_scan_ms = Vec::new();
+    // Per worker (the calling thread's first), its scans' time and training points: with
+    // several, whether one of them (a slower vCPU, a busy neighbour) holds the others back,
+    // compared per training point because each worker gets other scans.
+    let mut per_worker: Vec<(std::thread::ThreadId, f64, usize)> =
+        vec![(std::thread::current().id(), 0.0, 0)];
     let mut totals_ms = Vec::new();
     let mut solo_ms = Vec::new();
     // Where the time goes: per scan, training data and evidence (into the map, or into a
-    // worker's own map); per pass, adding the workers' maps into the map after the last scan.
+    // worker's own map); per pass, the workers that had run out of scans waiting for the
+    // others' last, then adding the workers' maps into the map after the last scan.
     let mut phases_ms: [Vec<f64>; 2] = Default::default();
+    let mut tail_ms = Vec::new();
     let mut merge_ms = Vec::new();
     let mut pairs_in = (0usize, 0usize);
     // The fewest and most training points of a scan (with all scans' time per training point
@@ -167,12 +192,18 @@ fn ingest(a: IngestArgs) -> Result<()> {
     // not its raw points.
     let mut train_range = (usize::MAX, 0usize);
     for pass in 0..=a.repeat.max(1) {
-        let (wall_ms, timed, t_end) = ingest_pass(&mut workers, &scans, params, split);
-        let solo_wall_ms = solo_workers.as_mut().map(|w| ingest_pass(w, &scans, params, split).0);
+        let PassTime { wall_ms, scans: timed, start, end: t_end } =
+            ingest_pass(&mut workers, &scans, params, split);
+        let solo_wall_ms = solo_workers.as_mut().map(|w| ingest_pass(w, &scans, params, split).wall_ms);
         if pass > 0 {
-            for &(n_train, train, evidence, _) in timed.iter() {
-                let parts = [train, evidence].map(|d| d.as_secs_f64() * 1e3);
+            for &ScanTime { training_points: n_train, training, evidence, thread, .. } in timed.iter() {
+                let parts = [training, evidence].map(|d| d.as_secs_f64() * 1e3);
                 per_scan_ms.push(parts.iter().sum());
+                let ms: f64 = parts.iter().sum();
+                match per_worker.iter_mut().find(|(id, ..)| *id == thread) {
+                    Some((_, sum_ms, points)) => (*sum_ms, *points) = (*sum_ms + ms, *points + n_train),
+                    None => per_worker.push((thread, ms, n_train)),
+                }
                 for (v, ms) in phases_ms.iter_mut().zip(parts) {
                     v.push(ms);
                 }
@@ -180,7 +211,9 @@ fn ingest(a: IngestArgs) -> Result<()> {
                 pairs_in.1 += 1;
                 train_range = (train_range.0.min(n_train), train_range.1.max(n_train));
             }
-            let last = timed.iter().map(|t| t.3).max().unwrap_or(t_end);
+            let last = timed.iter().map(|t| t.done).max().unwrap_or(t_end);
+            let ran_out = first_to_run_out(&timed, threads, start).unwrap_or(last);
+            tail_ms.push((last.saturating_duration_since(ran_out)).as_secs_f64() * 1e3);
             merge_ms.push((t_end - last).as_secs_f64() * 1e3);
             totals_ms.push(wall_ms);
             solo_ms.extend(solo_wall_ms);
@@ -188,12 +221,15 @@ fn ingest(a: IngestArgs) -> Result<()> {
     }
     let [mut train_ms, mut scatter_ms] = phases_ms;
     let phase = [percentile(&mut train_ms, 0.5), percentile(&mut scatter_ms, 0.5)];
+    let tail = percentile(&mut tail_ms, 0.5);
     let merge = percentile(&mut merge_ms, 0.5);
     let training_points_mean = pairs_in.0 as f64 / pairs_in.1.max(1) as f64;
     let ns_per_training_point = per_scan_ms.iter().sum::<f64>() * 1e6 / pairs_in.0.max(1) as f64;
     let train_range = if pairs_in.1 == 0 { (0, 0) } else { train_range };
     let points: usize = scans.iter().map(|s| s.points_world.len()).sum();
     let med = percentile(&mut per_scan_ms, 0.5);
+    let worker_ns: Vec<f64> =
+        per_worker.iter().map(|&(_, ms, points)| ms * 1e6 / points.max(1) as f64).collect();
     let p90 = percentile(&mut per_scan_ms, 0.9);
     let total_med = percentile(&mut totals_ms, 0.5);
     let points_per_s = points as f64 / (total_med / 1e3);
@@ -214,9 +250,10 @@ fn ingest(a: IngestArgs) -> Result<()> {
             "training_points_per_scan_min": train_range.0, "training_points_per_scan_max": train_range.1,
             "ns_per_training_point": ns_per_training_point,
             "phase_ms_median": {"training": phase[0], "evidence": phase[1]},
-            "merge_ms_median": merge,
+            "tail_ms_median": tail, "merge_ms_median": merge,
         });
         if let Some((solo_med, speedup)) = solo {
+            v["per_worker_ns_per_training_point"] = serde_json::json!(worker_ns);
             v["one_worker_total_ms_median"] = serde_json::json!(solo_med);
             v["speedup_vs_one_worker"] = serde_json::json!(speedup);
         }
@@ -226,7 +263,7 @@ fn ingest(a: IngestArgs) -> Result<()> {
             "ingest {source}: {} scans × {} passes, {threads} worker(s) × {split} thread(s) per scan: per scan median {med:.3} ms, p90 {p90:.3} ms; \
              all scans median {total_med:.2} ms ({:.2} M raw points/s); per-scan medians: training {:.3} ms, \
              evidence {:.3} ms ({training_points_mean:.0} training points per scan, {}–{}; {ns_per_training_point:.1} ns per training point); \
-             adding the workers' maps {merge:.3} ms per pass",
+             per pass: workers out of scans waiting for the others' last {tail:.3} ms, then adding the workers' maps {merge:.3} ms",
             scans.len(),
             a.repeat.max(1),
             points_per_s / 1e6,
@@ -236,12 +273,31 @@ fn ingest(a: IngestArgs) -> Result<()> {
             train_range.1,
         );
         if let Some((solo_med, speedup)) = solo {
+            let workers = worker_ns.iter().map(|ns| format!("{ns:.1}")).collect::<Vec<_>>().join(", ");
             println!(
-                "  one worker, passes interleaved with those: all scans median {solo_med:.2} ms; {threads} workers are {speedup:.2}× as fast"
+                "  per worker (the calling thread first): {workers} ns per training point; one worker, passes interleaved with those: \
+                 all scans median {solo_med:.2} ms; {threads} workers are {speedup:.2}× as fast"
             );
         }
     }
     Ok(())
+}
+
+/// When the first of a pass's `workers` (those that had a scan to take) ran out of scans: the
+/// earliest of their last scans' ends, or the pass's `start` if one of them did none. From then
+/// until the pass's last scan ends, that worker waits: the imbalance of whole scans handed out
+/// one at a time. `None` for a pass without scans.
+fn first_to_run_out(timed: &[ScanTime], workers: usize, start: Instant) -> Option<Instant> {
+    let mut last_per_thread: Vec<(std::thread::ThreadId, Instant)> = Vec::new();
+    for t in timed {
+        match last_per_thread.iter_mut().find(|(id, _)| *id == t.thread) {
+            Some((_, done)) => *done = (*done).max(t.done),
+            None => last_per_thread.push((t.thread, t.done)),
+        }
+    }
+    let idle_throughout = !timed.is_empty() && last_per_thread.len() < workers.min(timed.len());
+    let first = last_per_thread.iter().map(|&(_, done)| done).min();
+    if idle_throughout { Some(start) } else { first }
 }
 
 /// Nearest-rank percentile (sorts in place); NaN for an empty sample.
@@ -256,4 +312,35 @@ pub(super) fn percentile(v: &mut [f64], q: f64) -> f64 {
 
 fn lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
     m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::time::Duration;
+
+    #[test]
+    fn the_wait_starts_when_the_first_worker_runs_out_of_scans() {
+        let start = Instant::now();
+        let (me, other) =
+            (std::thread::current().id(), std::thread::spawn(|| std::thread::current().id()).join().unwrap());
+        let scan = |thread, ms| ScanTime {
+            training_points: 1,
+            training: Duration::ZERO,
+            evidence: Duration::ZERO,
+            done: start + Duration::from_millis(ms),
+            thread,
+        };
+        // This thread's last scan ends at 5 ms, the other's at 9: the wait starts at 5.
+        let timed = [scan(me, 2), scan(other, 3), scan(me, 5), scan(other, 9)];
+        assert_eq!(first_to_run_out(&timed, 2, start), Some(start + Duration::from_millis(5)));
+        // One worker waits for no one: it ran out when its last scan ended.
+        let alone = [scan(me, 2), scan(me, 5)];
+        assert_eq!(first_to_run_out(&alone, 1, start), Some(start + Duration::from_millis(5)));
+        // Two workers, two scans, both done by one: the other waited from the start.
+        assert_eq!(first_to_run_out(&alone, 2, start), Some(start));
+        // One scan for two workers: only one of them had a scan to take.
+        assert_eq!(first_to_run_out(&alone[..1], 2, start), Some(start + Duration::from_millis(2)));
+        assert_eq!(first_to_run_out(&[], 2, start), None);
+    }
 }
