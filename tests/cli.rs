@@ -240,7 +240,8 @@ fn bench_ingest_json() {
     assert!(solo.is_finite() && solo > 0.0, "{json}");
     let speedup = json_number(&json, "speedup_vs_one_worker");
     assert!((speedup - solo / total).abs() <= 1e-9 * speedup, "{json}");
-    // Each worker's time per training point: two workers, each of the order of all scans'.
+    // Each worker's time per training point, of the workers that ran scans (with three scans
+    // one of the two can be beaten to all of them): each of the order of all scans'.
     let workers: Vec<f64> = parse_json(&json)["per_worker_ns_per_training_point"]
         .as_array()
         .unwrap_or_else(|| panic!("no per-worker figures in {json}"))
@@ -248,7 +249,7 @@ fn bench_ingest_json() {
         .map(|m| m.as_f64().expect("a number"))
         .collect();
     let ns = json_number(&json, "ns_per_training_point");
-    assert_eq!(workers.len(), 2, "{json}");
+    assert!((1..=2).contains(&workers.len()), "{json}");
     assert!(workers.iter().all(|&w| w > 0.0 && w < 10.0 * ns && ns < 10.0 * w), "{json}");
 }
 

@@ -173,7 +173,7 @@ fn ingest(a: IngestArgs) -> Result<()> {
     // between runs (two runs of one binary gave 1231 and 1884 scans/s on one worker).
     let mut solo_workers = (threads > 1).then(|| Workers::new(params, 1));
     let mut per_scan_ms = Vec::new();
-    // Per worker (the calling thread's first), its scans' time and training points: with
+    // Per worker that runs scans (the calling thread's first), their time and training points: with
     // several, whether one of them (a slower vCPU, a busy neighbour) holds the others back,
     // compared per training point because each worker gets other scans.
     let mut per_worker: Vec<(std::thread::ThreadId, f64, usize)> =
@@ -198,8 +198,8 @@ fn ingest(a: IngestArgs) -> Result<()> {
         if pass > 0 {
             for &ScanTime { training_points: n_train, training, evidence, thread, .. } in timed.iter() {
                 let parts = [training, evidence].map(|d| d.as_secs_f64() * 1e3);
-                per_scan_ms.push(parts.iter().sum());
                 let ms: f64 = parts.iter().sum();
+                per_scan_ms.push(ms);
                 match per_worker.iter_mut().find(|(id, ..)| *id == thread) {
                     Some((_, sum_ms, points)) => (*sum_ms, *points) = (*sum_ms + ms, *points + n_train),
                     None => per_worker.push((thread, ms, n_train)),
@@ -228,8 +228,13 @@ fn ingest(a: IngestArgs) -> Result<()> {
     let train_range = if pairs_in.1 == 0 { (0, 0) } else { train_range };
     let points: usize = scans.iter().map(|s| s.points_world.len()).sum();
     let med = percentile(&mut per_scan_ms, 0.5);
-    let worker_ns: Vec<f64> =
-        per_worker.iter().map(|&(_, ms, points)| ms * 1e6 / points.max(1) as f64).collect();
+    // Workers that ran no scan (a helper that woke after the others had taken them all, or
+    // the calling thread beaten to every scan) have no figure.
+    let worker_ns: Vec<f64> = per_worker
+        .iter()
+        .filter(|&&(_, _, points)| points > 0)
+        .map(|&(_, ms, points)| ms * 1e6 / points as f64)
+        .collect();
     let p90 = percentile(&mut per_scan_ms, 0.9);
     let total_med = percentile(&mut totals_ms, 0.5);
     let points_per_s = points as f64 / (total_med / 1e3);
@@ -275,7 +280,7 @@ fn ingest(a: IngestArgs) -> Result<()> {
         if let Some((solo_med, speedup)) = solo {
             let workers = worker_ns.iter().map(|ns| format!("{ns:.1}")).collect::<Vec<_>>().join(", ");
             println!(
-                "  per worker (the calling thread first): {workers} ns per training point; one worker, passes interleaved with those: \
+                "  per worker that ran scans (the calling thread first): {workers} ns per training point; one worker, passes interleaved with those: \
                  all scans median {solo_med:.2} ms; {threads} workers are {speedup:.2}× as fast"
             );
         }
