@@ -176,8 +176,8 @@ fn ingest(a: IngestArgs) -> Result<()> {
     // Per worker that runs scans (the calling thread's first), their time and training points: with
     // several, whether one of them (a slower vCPU, a busy neighbour) holds the others back,
     // compared per training point because each worker gets other scans.
-    let mut per_worker: Vec<(std::thread::ThreadId, f64, usize)> =
-        vec![(std::thread::current().id(), 0.0, 0)];
+    let mut per_worker: Vec<(std::thread::ThreadId, (f64, usize))> =
+        vec![(std::thread::current().id(), (0.0, 0))];
     let mut totals_ms = Vec::new();
     let mut solo_ms = Vec::new();
     // Where the time goes: per scan, training data and evidence (into the map, or into a
@@ -200,10 +200,8 @@ fn ingest(a: IngestArgs) -> Result<()> {
                 let parts = [training, evidence].map(|d| d.as_secs_f64() * 1e3);
                 let ms: f64 = parts.iter().sum();
                 per_scan_ms.push(ms);
-                match per_worker.iter_mut().find(|(id, ..)| *id == thread) {
-                    Some((_, sum_ms, points)) => (*sum_ms, *points) = (*sum_ms + ms, *points + n_train),
-                    None => per_worker.push((thread, ms, n_train)),
-                }
+                let (sum_ms, points) = of_thread(&mut per_worker, thread, (0.0, 0));
+                (*sum_ms, *points) = (*sum_ms + ms, *points + n_train);
                 for (v, ms) in phases_ms.iter_mut().zip(parts) {
                     v.push(ms);
                 }
@@ -213,7 +211,7 @@ fn ingest(a: IngestArgs) -> Result<()> {
             }
             let last = timed.iter().map(|t| t.done).max().unwrap_or(t_end);
             let ran_out = first_to_run_out(&timed, threads, start).unwrap_or(last);
-            tail_ms.push((last.saturating_duration_since(ran_out)).as_secs_f64() * 1e3);
+            tail_ms.push(last.saturating_duration_since(ran_out).as_secs_f64() * 1e3);
             merge_ms.push((t_end - last).as_secs_f64() * 1e3);
             totals_ms.push(wall_ms);
             solo_ms.extend(solo_wall_ms);
@@ -232,8 +230,8 @@ fn ingest(a: IngestArgs) -> Result<()> {
     // the calling thread beaten to every scan) have no figure.
     let worker_ns: Vec<f64> = per_worker
         .iter()
-        .filter(|&&(_, _, points)| points > 0)
-        .map(|&(_, ms, points)| ms * 1e6 / points as f64)
+        .filter(|&&(_, (_, points))| points > 0)
+        .map(|&(_, (ms, points))| ms * 1e6 / points as f64)
         .collect();
     let p90 = percentile(&mut per_scan_ms, 0.9);
     let total_med = percentile(&mut totals_ms, 0.5);
@@ -295,14 +293,29 @@ fn ingest(a: IngestArgs) -> Result<()> {
 fn first_to_run_out(timed: &[ScanTime], workers: usize, start: Instant) -> Option<Instant> {
     let mut last_per_thread: Vec<(std::thread::ThreadId, Instant)> = Vec::new();
     for t in timed {
-        match last_per_thread.iter_mut().find(|(id, _)| *id == t.thread) {
-            Some((_, done)) => *done = (*done).max(t.done),
-            None => last_per_thread.push((t.thread, t.done)),
-        }
+        let done = of_thread(&mut last_per_thread, t.thread, t.done);
+        *done = (*done).max(t.done);
     }
     let idle_throughout = !timed.is_empty() && last_per_thread.len() < workers.min(timed.len());
     let first = last_per_thread.iter().map(|&(_, done)| done).min();
     if idle_throughout { Some(start) } else { first }
+}
+
+/// The entry of `thread` in a list kept per thread (a pass has a handful), added as `new` if
+/// it has none yet.
+fn of_thread<T>(
+    per_thread: &mut Vec<(std::thread::ThreadId, T)>,
+    thread: std::thread::ThreadId,
+    new: T,
+) -> &mut T {
+    let at = match per_thread.iter().position(|(id, _)| *id == thread) {
+        Some(at) => at,
+        None => {
+            per_thread.push((thread, new));
+            per_thread.len() - 1
+        }
+    };
+    &mut per_thread[at].1
 }
 
 /// Nearest-rank percentile (sorts in place); NaN for an empty sample.
