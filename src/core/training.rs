@@ -377,7 +377,8 @@ impl<S: TableSlot> VoxelCentroids<S> {
 
 /// Adds `p` to the voxel `key` of a table holding `len` voxels, probing from its home slot
 /// `home`; returns the new number of voxels. `sums` and `keys` must have room for one more voxel
-/// and its scratch entry, and `sums[len]` must be [`EMPTY_SUM`].
+/// and its scratch entry, and `sums[len]` must be [`EMPTY_SUM`]. `tag` is the table's (its
+/// full slots', for a [tagged](TableSlot::TAGGED) slot type).
 ///
 /// Without a branch on whether the voxel is new (about half of a scan's lookups find it,
 /// in no order a predictor learns): a new voxel's index is `len`, whose sum is
