@@ -91,8 +91,9 @@ struct ScanTime {
     training_points: usize,
     training: std::time::Duration,
     evidence: std::time::Duration,
-    /// When the scan was done, and on which worker's thread.
+    /// When the scan was done.
     done: Instant,
+    /// The thread of the worker that did it.
     thread: std::thread::ThreadId,
 }
 /// Every scan's, in the order they were done.
