@@ -657,13 +657,19 @@ impl TrainingBuilder {
     /// 12.97–13.25 ms per scan, same bits. Rounds of 128 points for these tables too (they
     /// are no longer past [`LARGE_TABLE_BYTES`]) measured the same as rounds of 32.
     ///
-    /// Kept (2026-12-05, sixth session): the rays between two extra samples placed as one run
-    /// ([`place_along`]) instead of a test for a pending extra before every ray: 2,279 → 2,254 M
-    /// instructions for `--lidar64 2 --repeat 1` (callgrind), training medians 12.0 → 11.6 and
-    /// 13.0 → 12.1 ms per dense scan in two sets of alternated runs, same bits. Tried and not
-    /// kept: finding each run's end by binary search (training 14.1–15.1 ms), and keeping and
-    /// placing the rays 1024 at a time, so that the three passes over them (keep, find the runs,
-    /// place) find them in the cache (12.2 against 12.1 ms median over five alternations).
+    /// Kept (2026-12-06, eleventh session): one pass over the rays per shell, placing each
+    /// ray's sample and the extras between them, where there were three (drop the rays that
+    /// had ended, find the run of rays before each extra, place the runs); a ray that has ended
+    /// writes its sample without counting it, and the ended rays are dropped once a quarter
+    /// have (dropping them every shell moved every 40-byte ray after the first that had ended).
+    /// `--lidar64 2 --repeat 1` (callgrind): 2,205.8 → 2,202.3 M instructions, the evidence's
+    /// unchanged to the instruction. Dense training (`bench ingest --lidar64 6 --repeat 2
+    /// --threads 1`, ten alternated runs on a busy 2.1 GHz Xeon): median 17.0 → 15.3 ms per
+    /// scan, the five calmest runs 15.6–15.8 → 14.4–15.2, faster in six of the ten pairs.
+    /// (The sixth session had placed the rays between two extras as one run instead of a test
+    /// per ray, 1.1% fewer instructions then; the passes that needed are gone. Tried and not
+    /// kept then: finding each run's end by binary search, and taking the rays 1024 at a time
+    /// through the three passes so they stayed in the cache, no faster.)
     fn frees_by_shell<S: TableSlot>(
         &mut self,
         table: &mut VoxelCentroids<S>,
@@ -697,42 +703,59 @@ impl TrainingBuilder {
         self.sort_extras_by_shell();
         let mut next_extra = 0;
         let mut k = 0u32;
-        while !self.rays.is_empty() || next_extra < self.sorted_extras.len() {
+        // Rays that may still have samples: all of them before shell 1, then those whose
+        // sample in the last shell was regular.
+        let mut live = self.rays.len();
+        self.samples.clear();
+        self.samples.resize(SAMPLE_BUFFER, [0.0; 3]);
+        while live > 0 || next_extra < self.sorted_extras.len() {
             let d = f64::from(k) * fr;
-            // Rays with a regular sample in this shell (shell 0 has none). (Dropping the others
-            // in the pass that places the samples, writing each kept ray back, made the dense
-            // drive's training 1 ms slower.)
-            let rays: &[FreeRay] = if k > 0 {
-                self.rays.retain(|r| d < r.len);
-                &self.rays
-            } else {
-                &[]
-            };
             let end = self.shell_ends.get(k as usize).copied().unwrap_or(next_extra);
             let extras = &self.sorted_extras[next_extra..end];
             next_extra = end;
-            self.samples.clear();
-            debug_assert!(
-                rays.iter().all(|r| shell(along(o, r.n, d)) == k),
-                "a sample {d} m along a ray left its shell"
-            );
-            // Each extra comes after the regular samples of the rays up to its own (by ray
-            // number), before those of the rays after it: the rays between two extras go in as
-            // one run.
-            let mut from = 0;
-            for e in extras {
-                let mut upto = from;
-                while upto < rays.len() && rays[upto].order <= e.order {
-                    upto += 1;
+            let buf: &mut [[f64; 3]; SAMPLE_BUFFER] =
+                (&mut self.samples[..SAMPLE_BUFFER]).try_into().expect("a sample buffer");
+            let mut n = 0;
+            let mut e = 0;
+            // Shell 0 has no regular samples.
+            if k > 0 {
+                debug_assert!(
+                    self.rays.iter().filter(|r| d < r.len).all(|r| shell(along(o, r.n, d)) == k),
+                    "a sample {d} m along a ray left its shell"
+                );
+                // One pass over the rays per shell: each extra goes after the regular samples
+                // of the rays up to its own (by ray number), before those of the rays after it;
+                // a ray no longer than `d` has ended, and writes its sample without counting it. (The
+                // origin's number, u32::MAX, is also "no extra left": it follows every ray.)
+                let mut next_order = extras.first().map_or(u32::MAX, |x| x.order);
+                live = 0;
+                for r in &self.rays {
+                    while next_order < r.order {
+                        n = push_sample(buf, n, extras[e].p, table, inv_ds);
+                        e += 1;
+                        next_order = extras.get(e).map_or(u32::MAX, |x| x.order);
+                    }
+                    if n >= SAMPLE_BUFFER {
+                        table.add_all::<false>(buf, inv_ds);
+                        n = 0;
+                    }
+                    buf[n] = along(o, r.n, d);
+                    let regular = usize::from(d < r.len);
+                    n += regular;
+                    live += regular;
                 }
-                place_along(&mut self.samples, &rays[from..upto], o, d, table, inv_ds);
-                self.samples.push(e.p);
-                from = upto;
             }
-            place_along(&mut self.samples, &rays[from..], o, d, table, inv_ds);
-            table.add_all::<false>(&self.samples, inv_ds);
+            for x in &extras[e..] {
+                n = push_sample(buf, n, x.p, table, inv_ds);
+            }
+            table.add_all::<false>(&buf[..n], inv_ds);
             table.append_centroids(&mut out.frees);
             table.clear();
+            // The rays that ended stay (writing nothing) until a quarter have: dropping them
+            // every shell moved every ray after the first that ended.
+            if k > 0 && live <= self.rays.len() - self.rays.len() / 4 {
+                self.rays.retain(|r| d < r.len);
+            }
             k += 1;
         }
     }
@@ -831,25 +854,22 @@ fn shell_at(distance_squared: f64, fr: f64) -> u32 {
     (distance_squared.sqrt() / fr + 0.5) as i32 as u32
 }
 
-/// Appends the sample `d` metres along each of `rays` to `samples`, handing the samples to
-/// `table` (and emptying them) whenever they reach [`SAMPLE_BUFFER`].
-fn place_along<S: TableSlot>(
-    samples: &mut Vec<[f64; 3]>,
-    mut rays: &[FreeRay],
-    o: [f64; 3],
-    d: f64,
+/// Writes `p` at `buf[n]` and returns the number of samples in `buf`, handing a full buffer to
+/// `table` first.
+#[inline(always)]
+fn push_sample<S: TableSlot>(
+    buf: &mut [[f64; 3]; SAMPLE_BUFFER],
+    mut n: usize,
+    p: [f64; 3],
     table: &mut VoxelCentroids<S>,
     inv_ds: f64,
-) {
-    while !rays.is_empty() {
-        let (now, later) = rays.split_at(SAMPLE_BUFFER.saturating_sub(samples.len()).min(rays.len()));
-        samples.extend(now.iter().map(|r| along(o, r.n, d)));
-        rays = later;
-        if samples.len() >= SAMPLE_BUFFER {
-            table.add_all::<false>(samples, inv_ds);
-            samples.clear();
-        }
+) -> usize {
+    if n >= SAMPLE_BUFFER {
+        table.add_all::<false>(buf, inv_ds);
+        n = 0;
     }
+    buf[n] = p;
+    n + 1
 }
 
 /// The point `d` metres from `o` along the unit direction `n`.
