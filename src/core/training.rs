@@ -324,7 +324,8 @@ impl<S: TableSlot> VoxelCentroids<S> {
             let (slots, sums, vkeys) =
                 (&mut self.slots[..=mask], &mut self.sums[..=most], &mut self.keys[..=most]);
             for (((&k, &h), &p), &ok) in keys.iter().zip(&homes).zip(chunk).zip(&inside) {
-                if ok {
+                // Unchecked points are all inside: no test of `inside` per point.
+                if !CHECKED || ok {
                     len = insert(slots, sums, vkeys, len, k, h, p, mask, tag);
                 } else {
                     rejected += 1;
