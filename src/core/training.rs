@@ -221,8 +221,9 @@ impl TableSlot for CompactSlot {
         let mut i = home & mask;
         // One word, zero where the probe ends: the smaller of the index (0: empty) and the
         // keys' difference (0: the same key). Against the `bool` through `black_box` that
-        // `Slot` keeps: 722.8 → 704.4 M training instructions for `bench ingest --lidar64 2 --repeat 1`
-        // (callgrind), dense training faster in three of four alternated runs (2026-12-06).
+        // `Slot` keeps: 722.8 → 704.4 M training instructions for `bench ingest --lidar64 2
+        // --repeat 1` (callgrind), dense training faster in three of four alternated runs
+        // (2026-12-06).
         while (slots[i].0 & ((1 << COMPACT_INDEX_BITS) - 1))
             .min((slots[i].0 ^ (key << COMPACT_INDEX_BITS)) >> COMPACT_INDEX_BITS)
             != 0
