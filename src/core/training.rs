@@ -124,12 +124,11 @@ pub(crate) trait TableSlot: Copy + Default + std::fmt::Debug {
     fn new(key: u64, index: u32, tag: u32) -> Self;
     /// The voxel's index into the sums + 1, or 0 for an empty slot.
     fn index(self, tag: u32) -> u32;
-    /// The first slot from `home` (and on, wrapping within `mask + 1` slots) where a probe for
-    /// `key` ends: an empty one or the one holding `key`. One branch per slot, taken on a
-    /// collision only: the two ways a probe ends are tested without branches (the compiler,
-    /// left to itself, tests whether the slot is empty in a branch of its own, which goes
-    /// either way).
-    fn find(slots: &[Self], home: usize, mask: usize, key: u64, tag: u32) -> usize;
+    /// Zero where a probe for `key` ends (the slot is empty or holds `key`), not zero where it
+    /// goes on: one word for the probe loop's one branch, taken on a collision only. (Left to
+    /// itself, the compiler tests whether the slot is empty in a branch of its own, which goes
+    /// either way.)
+    fn probe(self, key: u64, tag: u32) -> u64;
     /// The key of the voxel of the scaled point `s` (`p / ds`, each coordinate inside the
     /// key range).
     fn pack(s: [f64; 3]) -> u64;
@@ -166,16 +165,12 @@ impl TableSlot for Slot {
     }
 
     #[inline(always)]
-    fn find(slots: &[Self], home: usize, mask: usize, key: u64, tag: u32) -> usize {
-        let mut i = home & mask;
-        // The test as a `bool` through `black_box` (a store and a load): as one word (the
-        // keys' difference, masked by the tags' agreement), the compiler split it again, and
-        // the sample scans' training took 16–81% longer in eight alternated runs (2026-12-06,
-        // eleventh session).
-        while !std::hint::black_box((slots[i].tag != tag) | (slots[i].key == key)) {
-            i = (i + 1) & mask;
-        }
-        i
+    fn probe(self, key: u64, tag: u32) -> u64 {
+        // Through `black_box` (a store and a load): as the keys' difference masked by the
+        // tags' agreement, the compiler split the test into two branches again, and the sample
+        // scans' training took 16–81% longer in eight alternated runs (2026-12-06, eleventh
+        // session).
+        u64::from(!std::hint::black_box((self.tag != tag) | (self.key == key)))
     }
 
     #[inline(always)]
@@ -217,20 +212,13 @@ impl TableSlot for CompactSlot {
     }
 
     #[inline(always)]
-    fn find(slots: &[Self], home: usize, mask: usize, key: u64, _tag: u32) -> usize {
-        let mut i = home & mask;
-        // One word, zero where the probe ends: the smaller of the index (0: empty) and the
-        // keys' difference (0: the same key). Against the `bool` through `black_box` that
-        // `Slot` keeps: 722.8 → 704.4 M training instructions for `bench ingest --lidar64 2
-        // --repeat 1` (callgrind), dense training faster in three of four alternated runs
-        // (2026-12-06).
-        while (slots[i].0 & ((1 << COMPACT_INDEX_BITS) - 1))
-            .min((slots[i].0 ^ (key << COMPACT_INDEX_BITS)) >> COMPACT_INDEX_BITS)
-            != 0
-        {
-            i = (i + 1) & mask;
-        }
-        i
+    fn probe(self, key: u64, _tag: u32) -> u64 {
+        // The smaller of the index (0: empty) and the keys' difference (0: the same key).
+        // Against a `bool` through `black_box`, as `Slot` keeps: 722.8 → 704.4 M training
+        // instructions for `bench ingest --lidar64 2 --repeat 1` (callgrind), dense training
+        // faster in three of four alternated runs (2026-12-06).
+        (self.0 & ((1 << COMPACT_INDEX_BITS) - 1))
+            .min((self.0 ^ (key << COMPACT_INDEX_BITS)) >> COMPACT_INDEX_BITS)
     }
 
     #[inline(always)]
@@ -433,7 +421,10 @@ fn insert<S: TableSlot>(
     mask: usize,
     tag: u32,
 ) -> usize {
-    let i = S::find(slots, home, mask, key, tag);
+    let mut i = home & mask;
+    while slots[i].probe(key, tag) != 0 {
+        i = (i + 1) & mask;
+    }
     let found = slots[i].index(tag);
     let at = if found == 0 { len } else { found as usize - 1 };
     slots[i] = S::new(key, at as u32 + 1, tag);
@@ -752,8 +743,8 @@ impl TrainingBuilder {
                         e += 1;
                         next_order = extras.get(e).map_or(u32::MAX, |x| x.order);
                     }
-                    // Not `push_sample` and a subtraction: 24 M more instructions for the two
-                    // scans of `--lidar64 2` (callgrind).
+                    // Not `push_sample` with a count of 0 or 1 (or a subtraction after it): 24 M
+                    // more instructions for the two scans of `--lidar64 2` (callgrind), twice.
                     if n >= SAMPLE_BUFFER {
                         table.add_all::<false>(buf, inv_ds);
                         n = 0;
