@@ -107,6 +107,12 @@ pub(crate) struct VoxelCentroids<S: TableSlot = Slot> {
 
 /// A voxel's sum of points (x, y, z) and, as a fourth lane, their number (a double, exact up
 /// to 2^53): one 4-lane add per point.
+///
+/// Tried and not kept (2026-12-06, twelfth session): points kept as `[x, y, z, 1]` in the
+/// sample buffers, so that an insert adds one loaded vector instead of building it from 24
+/// bytes. The insert loop lost one instruction, but the keys of a compact table's round no
+/// longer vectorised (~32 instructions per point instead of ~9): `build_into` 704.4 → 722.6 M
+/// instructions for `bench ingest --lidar64 2 --repeat 1 --threads 1` (callgrind).
 type Sum = [f64; 4];
 
 /// What a voxel's sum starts from: −0 is the identity of floating-point addition (`x + −0 = x`
