@@ -410,17 +410,17 @@ impl<S: TableSlot> VoxelCentroids<S> {
 /// points in one voxel (neighbouring rays in a shell) in registers and looking the voxel up
 /// once per run, +0.5 to +0.9 ms (a branch per point on whether the voxel changed, which no
 /// predictor learns; runs are short, see below); resetting a round's new entries in one fill
-/// before it instead of one entry per insert, no change. Nor (2026-12-05, fourth session) inserting a
-/// round's two halves interleaved, to see whether consecutive inserts into one voxel wait on
-/// each other's sums (a timing probe, not the same bits): training 14.3–14.9 against
-/// 13.3–13.7 ms, so they do not, and the table's cost is its instructions.
+/// before it instead of one entry per insert, no change. Nor (2026-12-05, fourth session)
+/// inserting a round's two halves interleaved, to see whether consecutive inserts into one
+/// voxel wait on each other's sums (a timing probe, not the same bits): training 14.3–14.9
+/// against 13.3–13.7 ms, so they do not, and the table's cost is its instructions.
 ///
 /// Runs measured (2026-12-06, thirteenth session, counting equal consecutive keys of the
 /// dense shells' rounds in `bench ingest --lidar64 2 --repeat 1`, warm-up and timed pass):
 /// 5.49 M samples in 3.87 M runs, 1.42 samples per run; 76% of runs are one sample, which
-/// hold 53% of the samples. So any scheme that looks a voxel up once per run, even without
-/// a branch (runs cut into groups of up to 4 samples, gaps filled with −0, the identity), saves
-/// at most 29% of the lookups, ~1.6 M × ~55 instructions, while grouping costs ~8 per
+/// hold 53% of the samples. So any scheme that looks a voxel up once per run, even without a
+/// branch (runs cut into groups of up to 4 samples, gaps filled with −0, the identity),
+/// saves at most 29% of the lookups, ~1.6 M × ~55 instructions, while grouping costs ~8 per
 /// sample: under 2% of a pass at best. Not built.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
