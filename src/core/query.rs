@@ -24,6 +24,14 @@ pub struct PointAnswer {
 
 /// Answers for points in the world frame (metres). Points outside the key range or not finite
 /// answer `None`.
+///
+/// Tried and not kept (2026-12-06, fourteenth session, Xeon VM): assembling each round's
+/// answers in a 64-answer array (3.5 KiB, in L1) and appending it in one copy, so the 5.6 MB
+/// of answers go out as vector stores. Alternated call by call with pushing, 200 calls each in
+/// one process (`bench query`'s map), the medians differed by −1.7 to +2.5% over six runs:
+/// no gain. (A first comparison showed +4%, but against a push that also went through the
+/// array.) Copying 2, 4 or 8 rounds at a time (7–28 KiB, sizes where glibc's `memcpy` may
+/// take `rep movsb`) was no faster than one.
 pub fn query_points(
     map: &EvidenceMap,
     points_world: &[[f64; 3]],
