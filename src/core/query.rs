@@ -29,8 +29,7 @@ pub struct PointAnswer {
 /// answers in a 64-answer array (3.5 KiB, in L1) and appending it in one copy, so the 5.6 MB
 /// of answers go out as vector stores. Alternated call by call with pushing, 200 calls each in
 /// one process (`bench query`'s map), the medians differed by −1.7 to +2.5% over six runs:
-/// no gain. (A first comparison showed +4%, but against a push that also went through the
-/// array.) Copying 2, 4 or 8 rounds at a time (7–28 KiB, sizes where glibc's `memcpy` may
+/// no gain. Copying 2, 4 or 8 rounds at a time (7–28 KiB, sizes where glibc's `memcpy` may
 /// take `rep movsb`) was no faster than one.
 pub fn query_points(
     map: &EvidenceMap,
