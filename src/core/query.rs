@@ -31,15 +31,6 @@ pub struct PointAnswer {
 /// one process (`bench query`'s map), the medians differed by −1.7 to +2.5% over six runs:
 /// no gain. Copying 2, 4 or 8 rounds at a time (7–28 KiB, sizes where glibc's `memcpy` may
 /// take `rep movsb`) was no faster than one.
-///
-/// Also tried and not kept (fifteenth session, same alternation): every point's keys and
-/// block first, then the cells read in address order (a counting sort of the cell addresses
-/// by the MiB, so a page's translation is fetched once, not once per point): 17–23% slower,
-/// eight runs. The sort and the separate pass over the answers cost 22–33 ns a point, and keys
-/// and block lookups alone, with no cell read, ran at only 25–35 M points/s (keys alone ~60
-/// M/s) while whole points ran at 11–16: the block lookups are about half a point's time.
-/// Keys computed branch-free so the round's loop vectorises (rounding by adding 1.5·2⁵²
-/// instead of converting): −0.4 to +0.6%, four runs; the keys already hide under the misses.
 pub fn query_points(
     map: &EvidenceMap,
     points_world: &[[f64; 3]],
@@ -72,6 +63,16 @@ const _: () = assert!(POINT_BATCH <= EvidenceMap::MAX_BATCH_LOOKUPS, "a round is
 /// process, 2026-12-04, Xeon VM). Tried and not kept: two rounds in flight (round k+1's cells
 /// prefetched before round k is answered): no faster, the misses already fill the core's
 /// miss buffers.
+///
+/// Also tried and not kept (2026-12-06, fifteenth session, Xeon VM; alternated call by call
+/// with this version in one process, answers checked equal): every point's keys and block
+/// first, then the cells read in address order (a counting sort of the cell addresses by the
+/// MiB, so a page's translation is fetched once, not once per point): 17–23% slower, eight
+/// runs. The sort and the separate pass over the answers cost 22–33 ns a point, and keys and
+/// block lookups alone, with no cell read, ran at only 25–35 M points/s (keys alone ~60 M/s)
+/// while whole points ran at 11–16: the block lookups are about half a point's time. Keys
+/// computed branch-free so the round's loop vectorises (rounding by adding 1.5·2⁵² instead of
+/// converting): −0.4 to +0.6%, four runs; the keys already hide under the misses.
 pub fn for_each_point(
     map: &EvidenceMap,
     points_world: &[[f64; 3]],
