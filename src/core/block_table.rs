@@ -1,7 +1,7 @@
 //! The map's block table: block key → value, open addressing that a batch of lookups can
 //! prefetch stage by stage.
 //!
-//! Values live in one dense vector of `(key, value)` entries. Slots are two parallel arrays,
+//! Values live in one dense vector of `(key, value)` entries, one to a cache line. Slots are two parallel arrays,
 //! linear probing at a load of at most ½: a tag byte (0 = empty, else 0x80 | 7 bits of the
 //! key's hash) and the entry's index (`u32`). A lookup reads the tags 8 at a time (one `u64`,
 //! matched bytewise without branches; the first 8 tags are mirrored past the end so a group
@@ -54,8 +54,27 @@ pub struct BlockTable<V> {
     /// the first [`GROUP`] tags.
     tags: Vec<u8>,
     index: Vec<u32>,
-    entries: Vec<(BlockKey, V)>,
+    entries: Vec<Entry<V>>,
 }
+
+/// A key and its value, one entry to a cache line, so that the one prefetch of
+/// [`BlockTable::candidate`] brings in everything a lookup then reads.
+///
+/// Kept (2026-12-07, sixteenth session, 2.1 GHz Xeon VM): the map's entries were 56-byte
+/// tuples, the key at bytes 0–11, the block pointer (the cell's address and the block's
+/// layout) at 16–31, the ray summary after it. An entry starts at one of eight offsets in a
+/// line, and at three of them (40, 48, 56) the block pointer reaches into the next line, which
+/// nothing prefetched: three points in eight waited on a load of it before their cell could be
+/// prefetched. Aligned (64 bytes, the same fields), against the previous binary in
+/// `bench query --in-process-only`, two sets of 20 alternated pairs: points into a vector
+/// ×1.053 and ×1.033 (medians of the pairs' ratios; better in 13 and 12 of 20), visited ×1.042
+/// and ×1.056 (13 and 15 of 20), 8 m rays ×1.015. It costs 8 bytes a block, 0.016 per cell.
+/// Measured the same day and not built: the tags, index and entries in huge pages, ×1.003–1.053
+/// points into a vector and ×1.061–1.066 visited (the README's paragraph on where the query
+/// time goes).
+#[derive(Debug, Clone)]
+#[repr(C, align(64))]
+pub struct Entry<V>(BlockKey, V);
 
 impl<V> Default for BlockTable<V> {
     fn default() -> Self {
@@ -74,7 +93,7 @@ impl<V> BlockTable<V> {
 
     /// Bytes of table per entry at the worst load just after growing (¼): one entry and four
     /// slots (tag and index). For memory figures.
-    pub const WORST_BYTES_PER_ENTRY: usize = std::mem::size_of::<(BlockKey, V)>() + 4 * (1 + 4);
+    pub const WORST_BYTES_PER_ENTRY: usize = std::mem::size_of::<Entry<V>>() + 4 * (1 + 4);
 
     #[inline(always)]
     fn mask(&self) -> usize {
@@ -188,7 +207,7 @@ impl<V> BlockTable<V> {
         }
         let e = self.entries.len();
         assert!(e < u32::MAX as usize, "block table full");
-        self.entries.push((key, value));
+        self.entries.push(Entry(key, value));
         self.place(h, e);
         e
     }
@@ -270,15 +289,15 @@ impl<V> BlockTable<V> {
     }
 
     pub fn iter(&self) -> impl Iterator<Item = (&BlockKey, &V)> {
-        self.entries.iter().map(|(k, v)| (k, v))
+        self.entries.iter().map(|Entry(k, v)| (k, v))
     }
 
     pub fn keys(&self) -> impl Iterator<Item = &BlockKey> {
-        self.entries.iter().map(|(k, _)| k)
+        self.entries.iter().map(|Entry(k, _)| k)
     }
 
     pub fn values(&self) -> impl Iterator<Item = &V> {
-        self.entries.iter().map(|(_, v)| v)
+        self.entries.iter().map(|Entry(_, v)| v)
     }
 
     /// Batched lookups, stage 1: `key`'s hash, with its home slot prefetched.
@@ -306,17 +325,17 @@ impl<V> BlockTable<V> {
     /// another key's).
     #[inline(always)]
     pub fn confirm(&self, key: BlockKey, candidate: Option<u32>) -> Option<&V> {
-        let (k, v) = &self.entries[candidate? as usize];
+        let Entry(k, v) = &self.entries[candidate? as usize];
         if *k == key { Some(v) } else { self.get(&key) }
     }
 }
 
 impl<V> IntoIterator for BlockTable<V> {
     type Item = (BlockKey, V);
-    type IntoIter = std::vec::IntoIter<(BlockKey, V)>;
+    type IntoIter = std::iter::Map<std::vec::IntoIter<Entry<V>>, fn(Entry<V>) -> (BlockKey, V)>;
 
     fn into_iter(self) -> Self::IntoIter {
-        self.entries.into_iter()
+        self.entries.into_iter().map(|Entry(k, v)| (k, v))
     }
 }
 
