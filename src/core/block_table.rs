@@ -1,12 +1,12 @@
 //! The map's block table: block key → value, open addressing that a batch of lookups can
 //! prefetch stage by stage.
 //!
-//! Values live in one dense vector of `(key, value)` entries, one to a cache line. Slots are two parallel arrays,
-//! linear probing at a load of at most ½: a tag byte (0 = empty, else 0x80 | 7 bits of the
-//! key's hash) and the entry's index (`u32`). A lookup reads the tags 8 at a time (one `u64`,
-//! matched bytewise without branches; the first 8 tags are mirrored past the end so a group
-//! never wraps) up to the first empty one, then the index of each matching slot, then compares
-//! the entry's key. The tags are small (one byte per slot, 64 KiB for 32k blocks), so they stay
+//! Values live in one dense vector of `(key, value)` entries, one to a cache line ([`Entry`]).
+//! Slots are two parallel arrays, linear probing at a load of at most ½: a tag byte (0 = empty,
+//! else 0x80 | 7 bits of the key's hash) and the entry's index (`u32`). A lookup reads the tags
+//! 8 at a time (one `u64`, matched bytewise without branches; the first 8 tags are mirrored past
+//! the end so a group never wraps) up to the first empty one, then the index of each matching
+//! slot, then compares the entry's key. The tags are small (one byte per slot, 64 KiB for 32k blocks), so they stay
 //! in cache: a key that is absent — most of the blocks a ray enters — costs no miss and one
 //! well-predicted branch, as in a SwissTable.
 //!
@@ -398,6 +398,19 @@ mod tests {
             listed.sort_unstable();
             expected.sort_unstable();
             prop_assert_eq!(listed, expected);
+        }
+    }
+
+    #[test]
+    fn every_entry_starts_a_cache_line() {
+        // A value of 40 bytes, as the map's (block pointer and ray summary), beside its key.
+        let mut t = BlockTable::default();
+        for x in 0..100 {
+            t.insert(BlockKey::new(x, -x, 7), [x as u64; 5]);
+        }
+        assert_eq!(std::mem::size_of::<Entry<[u64; 5]>>(), 64);
+        for e in &t.entries {
+            assert_eq!(e as *const Entry<[u64; 5]> as usize % 64, 0);
         }
     }
 

@@ -239,6 +239,10 @@ struct Slot {
     summary: OnceLock<BlockSummary>,
 }
 
+// A block's table entry (its key and slot) fills one cache line, which a batched lookup
+// prefetches whole (`block_table::Entry`); a larger slot would take two lines a block.
+const _: () = assert!(std::mem::size_of::<super::block_table::Entry<Slot>>() == 64, "entry > 64 bytes");
+
 impl Slot {
     fn new(block: Arc<BlockEvidence>) -> Self {
         Self { block, summary: OnceLock::new() }
