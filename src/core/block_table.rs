@@ -3,12 +3,12 @@
 //!
 //! Values live in one dense vector of `(key, value)` entries, one to a cache line ([`Entry`]).
 //! Slots are two parallel arrays, linear probing at a load of at most ½: a tag byte (0 = empty,
-//! else 0x80 | 7 bits of the key's hash) and the entry's index (`u32`). A lookup reads the tags
-//! 8 at a time (one `u64`, matched bytewise without branches; the first 8 tags are mirrored past
-//! the end so a group never wraps) up to the first empty one, then the index of each matching
-//! slot, then compares the entry's key. The tags are small (one byte per slot, 64 KiB for 32k blocks), so they stay
-//! in cache: a key that is absent — most of the blocks a ray enters — costs no miss and one
-//! well-predicted branch, as in a SwissTable.
+//! else 0x80 | 7 bits of the key's hash) and the entry's index (`u32`). A lookup reads the tags 8
+//! at a time (one `u64`, matched bytewise without branches; the first 8 tags are mirrored past the
+//! end so a group never wraps) up to the first empty one, then the index of each matching slot,
+//! then compares the entry's key. The tags are small (one byte per slot, 64 KiB for 32k blocks), so
+//! they stay in cache: a key that is absent — most of the blocks a ray enters — costs no miss and
+//! one well-predicted branch, as in a SwissTable.
 //!
 //! Why not a general hash map: a point query on a large map makes three dependent cache
 //! misses (table slot, entry, cell). A general map hides where its slot lies, so a batch of
