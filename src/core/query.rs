@@ -30,7 +30,11 @@ pub struct PointAnswer {
 /// of answers go out as vector stores. Alternated call by call with pushing, 200 calls each in
 /// one process (`bench query`'s map), the medians differed by −1.7 to +2.5% over six runs:
 /// no gain. Copying 2, 4 or 8 rounds at a time (7–28 KiB, sizes where glibc's `memcpy` may
-/// take `rep movsb`) was no faster than one.
+/// take `rep movsb`) was no faster than one. Nor (2026-12-07, seventeenth session) appending
+/// each round's array with non-temporal stores (`movntdq`), so that the answers' lines are
+/// neither read before they are written nor kept in the caches the map's lookups use: ×0.96
+/// points per second, the median of ten alternated pairs of `bench query --in-process-only`
+/// (slower in eight).
 pub fn query_points(
     map: &EvidenceMap,
     points_world: &[[f64; 3]],

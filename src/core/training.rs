@@ -69,7 +69,11 @@ impl TrainingSet {
 /// and not kept: a round in three passes (keys and home slots; find or create each voxel in
 /// order and prefetch its sum; then add in order), so the misses on the sums overlap too:
 /// training 0.28–0.30 against 0.26–0.34 ms (five alternations), the extra pass cost what the
-/// overlap saved.
+/// overlap saved. On the dense drive too (2026-12-07, seventeenth session, every round of
+/// every table; the sums filled with [`EMPTY_SUM`] for a round's new voxels before its adds):
+/// training ×1.057 per scan (median of eight alternated pairs of `bench ingest --lidar64 6
+/// --repeat 3 --threads 1`, slower in six), although `perf annotate` puts ~30% of the inserts'
+/// samples on the sums' stores.
 ///
 /// Kept (2026-12-04): home slots from the top bits of the hash (the bits below 42 ignored x,
 /// so a lookup probed 2.3 slots on average and its exit branch was mispredicted every fourth
