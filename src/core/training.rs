@@ -704,7 +704,7 @@ impl TrainingBuilder {
     /// (timing probes that skipped them). Tried and not kept:
     /// - each voxel's sum in its slot (32-byte slots: key and count in one word, then the sum,
     ///   emptied to −0), so that a round's prefetched home slots bring the sums too: same bits,
-    ///   ×0.957 to ×0.995 in four sets (faster in 22 to 29 of 30 rounds), 0.1–0.7 ms a scan,
+    ///   ×0.957 to ×0.995 in six sets (faster in 22 to 29 of 30 rounds), 0.1–0.7 ms a scan,
     ///   not worth a third table type. At three-quarters load ×1.02, slower; with the active
     ///   slots sized per shell from the previous shell's voxels ×1.03, slower;
     /// - this loop over the rays in a function of its own, where `live` stayed in a register
