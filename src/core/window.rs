@@ -550,7 +550,7 @@ fn add_window<const W: usize, const W3: usize>(
 /// first cell is `at`.
 ///
 /// Every row is added, zero or not. No row is zero in every window, so none can be left out at
-/// compile time (checked 2026-12-07 for la3dm's geometry: a window starts where its point's
+/// compile time (worked out 2026-12-07 for la3dm's geometry: a window starts where its point's
 /// offset puts it, and for a point 1/16 cell past its cell's centre the corner rows lie 1.5
 /// cells away, inside the kernel's 2); leaving out each window's own zero rows would make the
 /// row loop's length vary from point to point, a branch no predictor learns.
