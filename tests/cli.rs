@@ -240,6 +240,9 @@ fn bench_ingest_json() {
     assert!(solo.is_finite() && solo > 0.0, "{json}");
     let speedup = json_number(&json, "speedup_vs_one_worker");
     assert!((speedup - solo / total).abs() <= 1e-9 * speedup, "{json}");
+    // One-worker passes in runs of 10 by default: with one timed pass (and the warm-up), one.
+    assert_eq!(json_number(&json, "one_worker_passes"), 1.0, "{json}");
+    assert_eq!(json_number(&json, "alternate_every"), 10.0, "{json}");
     // Each worker's time per training point, of the workers that ran scans (with three scans
     // one of the two can be beaten to all of them): each of the order of all scans'.
     let workers: Vec<f64> = parse_json(&json)["per_worker_ns_per_training_point"]
@@ -251,6 +254,24 @@ fn bench_ingest_json() {
     let ns = json_number(&json, "ns_per_training_point");
     assert!((1..=2).contains(&workers.len()), "{json}");
     assert!(workers.iter().all(|&w| w > 0.0 && w < 10.0 * ns && ns < 10.0 * w), "{json}");
+
+    // Runs that do not divide the passes: warm-up + 3 timed passes in runs of 2 (passes 0–1,
+    // then 2–3) time 3 one-worker passes, the warm-up's left out as on the workers.
+    let mut args: Vec<String> =
+        ["bench", "ingest", "--repeat", "3", "--threads", "2", "--alternate-every", "2", "--json"]
+            .map(String::from)
+            .into();
+    args.extend(sim.scans.iter().cloned());
+    let json = run_ok_text(dir, &args);
+    assert_eq!(json_number(&json, "one_worker_passes"), 3.0, "{json}");
+    assert_eq!(json_number(&json, "alternate_every"), 2.0, "{json}");
+    let mut args: Vec<String> =
+        ["bench", "ingest", "--repeat", "4", "--threads", "2", "--alternate-every", "3", "--json"]
+            .map(String::from)
+            .into();
+    args.extend(sim.scans.iter().cloned());
+    let json = run_ok_text(dir, &args);
+    assert_eq!(json_number(&json, "one_worker_passes"), 4.0, "{json}");
 }
 
 /// The demo serves on free loopback ports, streams its robot over gRPC, and (with `--exit`)

@@ -55,6 +55,10 @@ pub struct IngestArgs {
     /// Threads splitting each scan's evidence (same bits); for single large scans.
     #[arg(long, default_value_t = 1)]
     pub threads_per_scan: usize,
+    /// With several workers, the passes on one worker that `speedup_vs_one_worker` compares
+    /// with alternate with theirs in runs of this many (1: pass by pass).
+    #[arg(long, default_value_t = 10)]
+    pub alternate_every: usize,
     /// Maximum range (m); 0 = unlimited. Default 8 (30 with `--lidar64`).
     #[arg(long)]
     pub max_range: Option<f64>,
@@ -169,9 +173,17 @@ fn ingest(a: IngestArgs) -> Result<()> {
     let threads = a.threads.max(1);
     let split = a.threads_per_scan.max(1);
     let mut workers = Workers::new(params, threads);
-    // With several workers, every pass is followed by one on a single worker, so the speed-up
+    // With several workers, passes on a single worker alternate with theirs, so the speed-up
     // compares passes taken moments apart: on a shared host the load drifts by tens of percent
-    // between runs (two runs of one binary gave 1231 and 1884 scans/s on one worker).
+    // between runs (two runs of one binary gave 1231 and 1884 scans/s on one worker). They
+    // alternate in runs (`--alternate-every`, 10 passes, ~40 ms of the sample scans), as a
+    // server ingests: pass by pass, the helper's vCPU halted during every one-worker pass and
+    // each pass found the other's map out of the caches, which no steady ingest does. In four
+    // interleaved rounds (2026-12-07, nineteenth session, AMD EPYC VM, `--repeat 300`), pass by
+    // pass gave 1.62–1.64× in the three calm ones and runs of 10 gave 1.84–1.94× (runs of 50
+    // 1.87–1.91×), the helper as fast per training point as the calling thread (62 ns, against
+    // 72–78 pass by pass) and adding its map 0.09–0.12 ms instead of 0.15–0.17; the busy
+    // round gave 1.49× and 1.42×.
     let mut solo_workers = (threads > 1).then(|| Workers::new(params, 1));
     let mut per_scan_ms = Vec::new();
     // Per worker that runs scans (the calling thread's first), their time and training points: with
@@ -192,10 +204,20 @@ fn ingest(a: IngestArgs) -> Result<()> {
     // below): a scan's cost follows its training points (how much free space its rays cross),
     // not its raw points.
     let mut train_range = (usize::MAX, 0usize);
+    let every = a.alternate_every.max(1);
     for pass in 0..=a.repeat.max(1) {
         let PassTime { wall_ms, scans: timed, start, end: t_end } =
             ingest_pass(&mut workers, &scans, params, split);
-        let solo_wall_ms = solo_workers.as_mut().map(|w| ingest_pass(w, &scans, params, split).wall_ms);
+        // After every `every` passes on the workers (and after the last), as many on one worker.
+        let run_ends = (pass + 1) % every == 0 || pass == a.repeat.max(1);
+        if let Some(w) = solo_workers.as_mut().filter(|_| run_ends) {
+            for solo_pass in pass - pass % every..=pass {
+                let ms = ingest_pass(w, &scans, params, split).wall_ms;
+                if solo_pass > 0 {
+                    solo_ms.push(ms);
+                }
+            }
+        }
         if pass > 0 {
             for &ScanTime { training_points: n_train, training, evidence, thread, .. } in timed.iter() {
                 let parts = [training, evidence].map(|d| d.as_secs_f64() * 1e3);
@@ -215,7 +237,6 @@ fn ingest(a: IngestArgs) -> Result<()> {
             tail_ms.push(last.saturating_duration_since(ran_out).as_secs_f64() * 1e3);
             merge_ms.push((t_end - last).as_secs_f64() * 1e3);
             totals_ms.push(wall_ms);
-            solo_ms.extend(solo_wall_ms);
         }
     }
     let [mut train_ms, mut scatter_ms] = phases_ms;
@@ -238,6 +259,7 @@ fn ingest(a: IngestArgs) -> Result<()> {
     let total_med = percentile(&mut totals_ms, 0.5);
     let points_per_s = points as f64 / (total_med / 1e3);
     // The one-worker median and the speed-up over it, with several workers.
+    let solo_ms_len = solo_ms.len();
     let solo = solo_workers.map(|_| {
         let solo_med = percentile(&mut solo_ms, 0.5);
         (solo_med, solo_med / total_med)
@@ -260,6 +282,8 @@ fn ingest(a: IngestArgs) -> Result<()> {
             v["per_worker_ns_per_training_point"] = serde_json::json!(worker_ns);
             v["one_worker_total_ms_median"] = serde_json::json!(solo_med);
             v["speedup_vs_one_worker"] = serde_json::json!(speedup);
+            v["one_worker_passes"] = serde_json::json!(solo_ms_len);
+            v["alternate_every"] = serde_json::json!(every);
         }
         println!("{v}");
     } else {
@@ -279,8 +303,8 @@ fn ingest(a: IngestArgs) -> Result<()> {
         if let Some((solo_med, speedup)) = solo {
             let workers = worker_ns.iter().map(|ns| format!("{ns:.1}")).collect::<Vec<_>>().join(", ");
             println!(
-                "  per worker that ran scans (the calling thread first): {workers} ns per training point; one worker, passes interleaved with those: \
-                 all scans median {solo_med:.2} ms; {threads} workers are {speedup:.2}× as fast"
+                "  per worker that ran scans (the calling thread first): {workers} ns per training point; one worker, passes alternating with those \
+                 in runs of {every}: all scans median {solo_med:.2} ms; {threads} workers are {speedup:.2}× as fast"
             );
         }
     }
