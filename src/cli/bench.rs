@@ -176,7 +176,7 @@ fn ingest(a: IngestArgs) -> Result<()> {
     // With several workers, passes on a single worker alternate with theirs, so the speed-up
     // compares passes taken moments apart: on a shared host the load drifts by tens of percent
     // between runs (two runs of one binary gave 1231 and 1884 scans/s on one worker). They
-    // alternate in runs (`--alternate-every`, 10 passes, ~40 ms of the sample scans), as a
+    // alternate in runs (`--alternate-every`, 10 passes, ~25–40 ms of the sample scans), as a
     // server ingests: pass by pass, the helper's vCPU halted during every one-worker pass and
     // each pass found the other's map out of the caches, which no steady ingest does. In four
     // interleaved rounds (2026-12-07, nineteenth session, AMD EPYC VM, `--repeat 300`), pass by
@@ -204,12 +204,12 @@ fn ingest(a: IngestArgs) -> Result<()> {
     // below): a scan's cost follows its training points (how much free space its rays cross),
     // not its raw points.
     let mut train_range = (usize::MAX, 0usize);
-    let every = a.alternate_every.max(1);
-    for pass in 0..=a.repeat.max(1) {
+    let (repeat, every) = (a.repeat.max(1), a.alternate_every.max(1));
+    for pass in 0..=repeat {
         let PassTime { wall_ms, scans: timed, start, end: t_end } =
             ingest_pass(&mut workers, &scans, params, split);
         // After every `every` passes on the workers (and after the last), as many on one worker.
-        let run_ends = (pass + 1) % every == 0 || pass == a.repeat.max(1);
+        let run_ends = (pass + 1) % every == 0 || pass == repeat;
         if let Some(w) = solo_workers.as_mut().filter(|_| run_ends) {
             for solo_pass in pass - pass % every..=pass {
                 let ms = ingest_pass(w, &scans, params, split).wall_ms;
@@ -259,14 +259,13 @@ fn ingest(a: IngestArgs) -> Result<()> {
     let total_med = percentile(&mut totals_ms, 0.5);
     let points_per_s = points as f64 / (total_med / 1e3);
     // The one-worker median and the speed-up over it, with several workers.
-    let solo_ms_len = solo_ms.len();
     let solo = solo_workers.map(|_| {
         let solo_med = percentile(&mut solo_ms, 0.5);
         (solo_med, solo_med / total_med)
     });
     if a.json {
         let mut v = serde_json::json!({
-            "bench": "ingest", "source": source, "scans": scans.len(), "repeat": a.repeat.max(1),
+            "bench": "ingest", "source": source, "scans": scans.len(), "repeat": repeat,
             "threads": threads, "threads_per_scan": split, "max_range": max_range,
             "scans_per_s": scans.len() as f64 / (total_med / 1e3),
             "per_scan_ms_median": med, "per_scan_ms_p90": p90, "total_ms_median": total_med,
@@ -282,7 +281,7 @@ fn ingest(a: IngestArgs) -> Result<()> {
             v["per_worker_ns_per_training_point"] = serde_json::json!(worker_ns);
             v["one_worker_total_ms_median"] = serde_json::json!(solo_med);
             v["speedup_vs_one_worker"] = serde_json::json!(speedup);
-            v["one_worker_passes"] = serde_json::json!(solo_ms_len);
+            v["one_worker_passes"] = serde_json::json!(solo_ms.len());
             v["alternate_every"] = serde_json::json!(every);
         }
         println!("{v}");
@@ -293,7 +292,7 @@ fn ingest(a: IngestArgs) -> Result<()> {
              evidence {:.3} ms ({training_points_mean:.0} training points per scan, {}–{}; {ns_per_training_point:.1} ns per training point); \
              per pass: workers out of scans waiting for the others' last {tail:.3} ms, then adding the workers' maps {merge:.3} ms",
             scans.len(),
-            a.repeat.max(1),
+            repeat,
             points_per_s / 1e6,
             phase[0],
             phase[1],
