@@ -212,6 +212,14 @@ fn invalid_parameters_are_named() {
         &["box"],
     );
     assert_no_output(dir, "out.csv");
+
+    // Alternating in runs of no passes means nothing: a usage error, not a silent 1.
+    run_fail_code(
+        dir,
+        ["bench", "ingest", "--threads", "2", "--alternate-every", "0"],
+        2,
+        &["--alternate-every"],
+    );
 }
 
 #[test]

@@ -57,8 +57,8 @@ pub struct IngestArgs {
     pub threads_per_scan: usize,
     /// With several workers, the passes on one worker that `speedup_vs_one_worker` compares
     /// with alternate with theirs in runs of this many (1: pass by pass).
-    #[arg(long, default_value_t = 10)]
-    pub alternate_every: usize,
+    #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u64).range(1..))]
+    pub alternate_every: u64,
     /// Maximum range (m); 0 = unlimited. Default 8 (30 with `--lidar64`).
     #[arg(long)]
     pub max_range: Option<f64>,
@@ -204,7 +204,7 @@ fn ingest(a: IngestArgs) -> Result<()> {
     // below): a scan's cost follows its training points (how much free space its rays cross),
     // not its raw points.
     let mut train_range = (usize::MAX, 0usize);
-    let (repeat, every) = (a.repeat.max(1), a.alternate_every.max(1));
+    let (repeat, every) = (a.repeat.max(1), a.alternate_every as usize);
     for pass in 0..=repeat {
         let PassTime { wall_ms, scans: timed, start, end: t_end } =
             ingest_pass(&mut workers, &scans, params, split);
