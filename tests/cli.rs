@@ -321,6 +321,42 @@ fn assert_positive(v: &serde_json::Value, path: &str) {
     assert!(x.is_finite() && x > 0.0, "{path} = {x} in {v}");
 }
 
+/// `bench report` at quick sizes: every bench of a round run as a child process, twice, and a
+/// row per figure with both rounds' values, their median and range, and no verdicts (quick
+/// figures are not comparable with the targets).
+#[cfg(feature = "server")]
+#[test]
+fn bench_report_json() {
+    let tmp = tempfile::tempdir().unwrap();
+    let d = tmp.path().to_str().unwrap();
+    let json = run_ok_text(tmp.path(), ["bench", "report", "--quick", "--rounds", "2", "--json", "--dir", d]);
+    let v = parse_json(&json);
+    let runs = v["runs"].as_object().unwrap_or_else(|| panic!("no runs in {json}"));
+    let benches = ["sample", "sample_2w", "dense", "dense_2w", "query", "scale", "merge", "restart"];
+    assert_eq!(runs.len(), benches.len(), "{json}");
+    for b in benches {
+        assert_eq!(runs[b].as_array().map(Vec::len), Some(2), "{b} in {json}");
+    }
+    assert_eq!(v["commands"].as_array().map(Vec::len), Some(benches.len()), "{json}");
+    let rows = v["rows"].as_array().unwrap_or_else(|| panic!("no rows in {json}"));
+    let mut targets = 0;
+    for r in rows {
+        let values: Vec<f64> = r["values"].as_array().unwrap().iter().filter_map(|x| x.as_f64()).collect();
+        assert_eq!(values.len(), 2, "{r}");
+        assert!(values.iter().all(|x| x.is_finite() && *x > 0.0), "{r}");
+        let (lo, hi, med) =
+            (r["min"].as_f64().unwrap(), r["max"].as_f64().unwrap(), r["median"].as_f64().unwrap());
+        assert!(lo <= med && med <= hi && values.contains(&lo) && values.contains(&hi), "{r}");
+        assert_eq!(r["verdict"], "—", "{r}");
+        targets += usize::from(r["target"].is_string());
+    }
+    // The nine targets, two of them in two rows each (points in-process into a vector
+    // and visited; RAM and disk), and the dense scan's raw points per second.
+    assert_eq!(targets, 12, "{json}");
+    // The generated maps are gone.
+    assert_eq!(std::fs::read_dir(tmp.path()).unwrap().count(), 0, "files left in {d}");
+}
+
 /// `bench durable` end to end at a small size: three ingest runs against the real server
 /// (acknowledged and integrated rates), then restart and merge of two generated maps.
 #[cfg(feature = "server")]

@@ -220,6 +220,13 @@ fn invalid_parameters_are_named() {
         2,
         &["--alternate-every"],
     );
+    run_fail_code(dir, ["bench", "report", "--rounds", "0"], 2, &["--rounds"]);
+    // A bench that fails stops the report, naming the bench, its round and its own error.
+    run_fail(
+        dir,
+        ["bench", "report", "--quick", "--rounds", "1", "missing.pcd"],
+        &["bench sample", "round 1", "missing.pcd"],
+    );
 }
 
 #[test]

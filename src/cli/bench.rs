@@ -36,6 +36,9 @@ pub enum BenchCommand {
     /// Opens a data directory as a restarting server does (a large generated map unless
     /// `--data-dir` is given): time and memory, in a fresh process.
     Restart(super::bench_maps::RestartArgs),
+    /// Every figure with a target (issue 6), each bench run in turn for some rounds, as the
+    /// README's Markdown table: per figure the median, range and a verdict.
+    Report(super::bench_report::ReportArgs),
 }
 
 #[derive(Debug, Args)]
@@ -86,6 +89,7 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
         BenchCommand::Scale(a) => super::bench_scale::run(a),
         BenchCommand::Merge(a) => super::bench_maps::run_merge(a),
         BenchCommand::Restart(a) => super::bench_maps::run_restart(a),
+        BenchCommand::Report(a) => super::bench_report::run(a),
     }
 }
 

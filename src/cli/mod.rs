@@ -11,6 +11,7 @@ mod bench_maps;
 mod bench_query;
 #[cfg(feature = "server")]
 mod bench_query_net;
+mod bench_report;
 mod bench_scale;
 #[cfg(feature = "server")]
 mod bench_server;
