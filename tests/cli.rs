@@ -309,7 +309,6 @@ fn demo_builds_and_evaluates() {
 }
 
 /// A bench command's `--json` output.
-#[cfg(feature = "server")]
 fn parse_json(json: &str) -> serde_json::Value {
     serde_json::from_str(json.trim()).unwrap_or_else(|e| panic!("{e}: {json}"))
 }
@@ -319,6 +318,35 @@ fn parse_json(json: &str) -> serde_json::Value {
 fn assert_positive(v: &serde_json::Value, path: &str) {
     let x = v.pointer(path).and_then(serde_json::Value::as_f64).unwrap_or(f64::NAN);
     assert!(x.is_finite() && x > 0.0, "{path} = {x} in {v}");
+}
+
+/// `bench scale` at a small size: every level's map gets the room's scans (its blocks are the
+/// filler's plus the room's), each level's passes timed, and memory per cell for both maps.
+#[test]
+fn bench_scale_json() {
+    let tmp = tempfile::tempdir().unwrap();
+    let args =
+        ["bench", "scale", "--levels", "0,300,1000", "--repeat", "2", "--outdoor-scans", "1", "--json"];
+    let json = run_ok_text(tmp.path(), args);
+    let v = parse_json(&json);
+    let levels = v["levels"].as_array().unwrap_or_else(|| panic!("no levels in {json}"));
+    assert_eq!(levels.len(), 3, "{json}");
+    let room = levels[0]["blocks"].as_u64().unwrap_or(0);
+    assert!(room > 100, "{json}");
+    for (l, filler) in levels.iter().zip([0, 300, 1000]) {
+        assert_eq!(l["filler_blocks"].as_u64(), Some(filler), "{json}");
+        assert_eq!(l["blocks"].as_u64(), Some(room + filler), "{json}");
+        for key in ["per_scan_ms_median", "per_scan_ms_p90", "query_points_per_s", "rays_8m_per_s"] {
+            let x = l[key].as_f64().unwrap_or(f64::NAN);
+            assert!(x.is_finite() && x > 0.0, "{key} in {json}");
+        }
+    }
+    for map in ["room", "outdoor"] {
+        for key in ["ram_bytes_per_allocated_cell", "disk_bytes_per_allocated_cell"] {
+            let x = v["memory"][map][key].as_f64().unwrap_or(f64::NAN);
+            assert!(x.is_finite() && x > 0.0, "{map} {key} in {json}");
+        }
+    }
 }
 
 /// `bench report` at quick sizes: every bench of a round run as a child process, twice, and a

@@ -9,6 +9,11 @@
 //! cell data is shared, so its RAM is not. Queries are timed on the same maps (points uniform
 //! over all blocks, 8 m rays from the route).
 //!
+//! The levels' maps are all built first and their passes then alternate (a pass over the room
+//! on each level in turn), so a host whose speed drifts during the run weighs on every level
+//! alike: with each level's passes run back to back, a busy spell during one level's passes
+//! read as growth (or shrinkage) with map size.
+//!
 //! Memory: RAM per cell is the map's own layout — per block the evidence, the `Arc` counters
 //! and a hash-table slot at its lowest load (1/2) — divided by its cells (resident-set deltas
 //! proved too noisy to attribute); disk per cell is the size of the saved map file. "Allocated cells" are all 512 cells of each
@@ -53,10 +58,13 @@ pub fn run(a: ScaleArgs) -> Result<()> {
     let (_, room) = simulate(0, 12, &Lidar::default());
     let params = MapParams::default();
     let filler_source = build_map(&simulate(1, 24, &Lidar::default()).1, params, 1);
-    let mut levels = Vec::new();
-    for &n in &a.levels {
-        levels.push(level(&room, &filler_source, n, a.repeat)?);
+    let mut maps: Vec<Level> = a.levels.iter().map(|&n| Level::new(&filler_source, n)).collect();
+    for pass in 0..=a.repeat {
+        for l in &mut maps {
+            l.pass(&room, pass > 0);
+        }
     }
+    let levels: Vec<Value> = maps.into_iter().map(|l| l.summary(&room)).collect();
     let mut memory = json!({"room": memory_of(&build_map(&room, params, 1))?});
     if a.outdoor_scans > 0 {
         memory["outdoor"] = memory_of(&build_map(&outdoor_scans(a.outdoor_scans), outdoor_params(), 2))?;
@@ -71,26 +79,41 @@ pub fn run(a: ScaleArgs) -> Result<()> {
     Ok(())
 }
 
-/// One level: `filler` shared blocks, then the room scans, timed.
-fn level(room: &[SimScan], source: &EvidenceMap, filler: usize, repeat: usize) -> Result<Value> {
-    let params = *source.params();
-    let mut map = EvidenceMap::new(params);
-    add_filler(&mut map, source, filler);
-    let mut integ = Integrator::new(params);
-    let mut ms = Vec::new();
-    for pass in 0..=repeat {
+/// One level: a map of `filler` shared blocks into which the room scans go, pass by pass.
+struct Level {
+    filler: usize,
+    map: EvidenceMap,
+    integ: Integrator,
+    /// Per timed scan, its time.
+    ms: Vec<f64>,
+}
+
+impl Level {
+    fn new(source: &EvidenceMap, filler: usize) -> Self {
+        let params = *source.params();
+        let mut map = EvidenceMap::new(params);
+        add_filler(&mut map, source, filler);
+        Self { filler, map, integ: Integrator::new(params), ms: Vec::new() }
+    }
+
+    /// One pass over the room's scans, each timed if `timed`.
+    fn pass(&mut self, room: &[SimScan], timed: bool) {
         for s in room {
             let t0 = Instant::now();
-            integ.integrate(&mut map, &s.points_world, s.origin, 1);
-            if pass > 0 {
-                ms.push(t0.elapsed().as_secs_f64() * 1e3);
+            self.integ.integrate(&mut self.map, &s.points_world, s.origin, 1);
+            if timed {
+                self.ms.push(t0.elapsed().as_secs_f64() * 1e3);
             }
         }
     }
-    let (points_per_s, rays_per_s) = query_rates(&map, room);
-    Ok(json!({"filler_blocks": filler, "blocks": map.block_count(),
-              "per_scan_ms_median": percentile(&mut ms.clone(), 0.5), "per_scan_ms_p90": percentile(&mut ms, 0.9),
-              "query_points_per_s": points_per_s, "rays_8m_per_s": rays_per_s}))
+
+    fn summary(mut self, room: &[SimScan]) -> Value {
+        let (points_per_s, rays_per_s) = query_rates(&self.map, room);
+        json!({"filler_blocks": self.filler, "blocks": self.map.block_count(),
+               "per_scan_ms_median": percentile(&mut self.ms.clone(), 0.5),
+               "per_scan_ms_p90": percentile(&mut self.ms, 0.9),
+               "query_points_per_s": points_per_s, "rays_8m_per_s": rays_per_s})
+    }
 }
 
 /// Adds `n` blocks sharing the evidence of `source`'s blocks, tiled along +x beyond the room
