@@ -357,8 +357,18 @@ fn bench_scale_json() {
 fn bench_report_json() {
     let tmp = tempfile::tempdir().unwrap();
     let d = tmp.path().to_str().unwrap();
-    let json = run_ok_text(tmp.path(), ["bench", "report", "--quick", "--rounds", "2", "--json", "--dir", d]);
+    let out = tmp.path().join("report.json");
+    let o = out.to_str().unwrap();
+    let table =
+        run_ok_text(tmp.path(), ["bench", "report", "--quick", "--rounds", "2", "--dir", d, "--json-out", o]);
+    let json = std::fs::read_to_string(&out).unwrap();
     let v = parse_json(&json);
+    // The table on standard output: a row per figure, each with its median.
+    for r in v["rows"].as_array().into_iter().flatten() {
+        let (figure, median) = (r["figure"].as_str().unwrap(), r["median"].as_f64().unwrap());
+        let line = table.lines().find(|l| l.starts_with(&format!("| {figure} |")));
+        assert!(line.is_some_and(|l| l.contains("| —")), "{figure} ({median}) in {table}");
+    }
     let runs = v["runs"].as_object().unwrap_or_else(|| panic!("no runs in {json}"));
     let benches = ["sample", "sample_2w", "dense", "dense_2w", "query", "scale", "merge", "restart"];
     assert_eq!(runs.len(), benches.len(), "{json}");
@@ -381,8 +391,8 @@ fn bench_report_json() {
     // The nine targets, two of them in two rows each (points in-process into a vector
     // and visited; RAM and disk), and the dense scan's raw points per second.
     assert_eq!(targets, 12, "{json}");
-    // The generated maps are gone.
-    assert_eq!(std::fs::read_dir(tmp.path()).unwrap().count(), 0, "files left in {d}");
+    // The generated maps are gone: only the report's JSON is left.
+    assert_eq!(std::fs::read_dir(tmp.path()).unwrap().count(), 1, "files left in {d}");
 }
 
 /// `bench durable` end to end at a small size: three ingest runs against the real server

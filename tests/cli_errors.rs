@@ -221,6 +221,11 @@ fn invalid_parameters_are_named() {
         &["--alternate-every"],
     );
     run_fail_code(dir, ["bench", "report", "--rounds", "0"], 2, &["--rounds"]);
+    run_fail(
+        dir,
+        ["bench", "report", "--json-out", "no/such/dir/report.json"],
+        &["cannot write", "report.json"],
+    );
     // A bench that fails stops the report, naming the bench, its round and its own error.
     run_fail(
         dir,

@@ -29,6 +29,9 @@ pub struct ReportArgs {
     /// the table.
     #[arg(long)]
     pub json: bool,
+    /// Also write that JSON object to this file (the table still goes to standard output).
+    #[arg(long)]
+    pub json_out: Option<PathBuf>,
 }
 
 /// What a figure must reach.
@@ -213,6 +216,10 @@ pub fn run(a: ReportArgs) -> Result<()> {
     if a.scans.is_empty() && !a.quick {
         eprintln!("sample-scan rows: the built-in simulated room (give PCD files for la3dm's scans)");
     }
+    if let Some(path) = &a.json_out {
+        // Before the benches' minutes, not after them.
+        std::fs::File::create(path).with_context(|| format!("cannot write {}", path.display()))?;
+    }
     let exe = std::env::current_exe().context("cannot find this binary to run the benches")?;
     let benches = benches(&a);
     let mut runs: Vec<Vec<Value>> = benches.iter().map(|_| Vec::new()).collect();
@@ -233,18 +240,21 @@ pub fn run(a: ReportArgs) -> Result<()> {
         .collect();
     let machine = machine();
     let commands: Vec<String> = benches.iter().map(|(_, args)| command_text(args)).collect();
+    let by_bench: serde_json::Map<String, Value> =
+        benches.iter().zip(runs).map(|((n, _), v)| (n.to_string(), Value::Array(v))).collect();
+    let v = json!({
+        "bench": "report",
+        "rounds": a.rounds,
+        "quick": a.quick,
+        "machine": machine,
+        "commands": commands,
+        "rows": summaries,
+        "runs": by_bench,
+    });
+    if let Some(path) = &a.json_out {
+        std::fs::write(path, format!("{v}\n")).with_context(|| format!("cannot write {}", path.display()))?;
+    }
     if a.json {
-        let by_bench: serde_json::Map<String, Value> =
-            benches.iter().zip(runs).map(|((n, _), v)| (n.to_string(), Value::Array(v))).collect();
-        let v = json!({
-            "bench": "report",
-            "rounds": a.rounds,
-            "quick": a.quick,
-            "machine": machine,
-            "commands": commands,
-            "rows": summaries,
-            "runs": by_bench,
-        });
         println!("{v}");
         return Ok(());
     }
