@@ -161,30 +161,34 @@ fn memory(v: &Value, key: &str) -> Option<f64> {
     Some(outdoor.max(at(v, &format!("/memory/room/{key}"))?))
 }
 
+fn os(args: &[&str]) -> Vec<OsString> {
+    args.iter().map(OsString::from).collect()
+}
+
 /// The benches of a round, by name, with their arguments after `bgkmap`.
 fn benches(a: &ReportArgs) -> Vec<(&'static str, Vec<OsString>)> {
     let q = a.quick;
-    let pick = |quick: &str, full: &str| if q { quick.to_string() } else { full.to_string() };
-    let args = |list: Vec<String>| list.into_iter().map(OsString::from).collect::<Vec<_>>();
-    let sample = |repeat: String, threads: &str| {
-        let mut v = args(vec!["bench".into(), "ingest".into()]);
-        v.extend(a.scans.iter().map(|p| p.clone().into_os_string()));
-        v.extend(args(vec!["--repeat".into(), repeat, "--threads".into(), threads.into(), "--json".into()]));
+    let pick = |quick: &'static str, full: &'static str| if q { quick } else { full };
+    // `bench <name> --json`, and `quick` after it with `--quick`.
+    let bench = |name: &str, quick: &[&str]| {
+        let mut v = os(&["bench", name, "--json"]);
+        if q {
+            v.extend(os(quick));
+        }
         v
     };
-    let dense = |scans: String, repeat: String, threads: &str| {
-        let list =
-            ["bench", "ingest", "--lidar64", &scans, "--repeat", &repeat, "--threads", threads, "--json"];
-        args(list.map(String::from).to_vec())
+    let sample = |repeat: &str, threads: &str| {
+        let mut v = os(&["bench", "ingest"]);
+        v.extend(a.scans.iter().map(|p| p.clone().into_os_string()));
+        v.extend(os(&["--repeat", repeat, "--threads", threads, "--json"]));
+        v
     };
-    let large = |bench: &str| {
-        let mut v = args(vec!["bench".into(), bench.into(), "--json".into(), "--dir".into()]);
-        v.push(a.dir.clone().into_os_string());
-        if q {
-            v.extend(args(
-                ["--blocks", "300", "--journal-scans", "5", "--points", "500"].map(String::from).to_vec(),
-            ));
-        }
+    let dense = |scans: &str, repeat: &str, threads: &str| {
+        os(&["bench", "ingest", "--lidar64", scans, "--repeat", repeat, "--threads", threads, "--json"])
+    };
+    let large = |name: &str| {
+        let mut v = bench(name, &["--blocks", "300", "--journal-scans", "5", "--points", "500"]);
+        v.extend([OsString::from("--dir"), a.dir.clone().into_os_string()]);
         v
     };
     let mut list = vec![
@@ -194,21 +198,15 @@ fn benches(a: &ReportArgs) -> Vec<(&'static str, Vec<OsString>)> {
         ("dense_2w", dense(pick("2", "6"), pick("2", "4"), "2")),
     ];
     #[cfg(feature = "server")]
-    {
-        let quick = ["--scans", "1", "--batch", "2000", "--latency-samples", "50", "--rays", "100"];
-        let mut v = args(vec!["bench".into(), "query".into(), "--json".into()]);
-        if q {
-            v.extend(args(quick.map(String::from).to_vec()));
-        }
-        list.push(("query", v));
-    }
-    let mut scale = args(vec!["bench".into(), "scale".into(), "--json".into()]);
-    if q {
-        scale.extend(args(
-            ["--levels", "0,1000", "--repeat", "1", "--outdoor-scans", "1"].map(String::from).to_vec(),
-        ));
-    }
-    list.extend([("scale", scale), ("merge", large("merge")), ("restart", large("restart"))]);
+    list.push((
+        "query",
+        bench("query", &["--scans", "1", "--batch", "2000", "--latency-samples", "50", "--rays", "100"]),
+    ));
+    list.extend([
+        ("scale", bench("scale", &["--levels", "0,1000", "--repeat", "1", "--outdoor-scans", "1"])),
+        ("merge", large("merge")),
+        ("restart", large("restart")),
+    ]);
     list
 }
 
