@@ -346,6 +346,39 @@ fn of_thread<T>(
     &mut per_thread[at].1
 }
 
+/// Runs `bgkmap <args>` (this binary) in a fresh process and returns the JSON object it printed
+/// last; its standard error becomes the error if it fails.
+pub(super) fn bench_in_child(args: &[std::ffi::OsString]) -> Result<serde_json::Value> {
+    use anyhow::{Context, bail};
+    let exe = std::env::current_exe().context("locating the bgkmap executable")?;
+    let out = std::process::Command::new(exe)
+        .args(args)
+        .stdin(std::process::Stdio::null())
+        .output()
+        .with_context(|| format!("running {}", command_text(args)))?;
+    if !out.status.success() {
+        bail!(
+            "{} failed ({}): {}",
+            command_text(args),
+            out.status,
+            String::from_utf8_lossy(&out.stderr).trim()
+        );
+    }
+    let text = String::from_utf8_lossy(&out.stdout);
+    let last = text.lines().rev().find(|l| l.trim_start().starts_with('{')).unwrap_or_default();
+    serde_json::from_str(last).with_context(|| format!("{} printed no JSON object", command_text(args)))
+}
+
+/// `bgkmap` and `args` as one line, for messages.
+pub(super) fn command_text(args: &[std::ffi::OsString]) -> String {
+    let mut s = String::from("bgkmap");
+    for a in args {
+        s.push(' ');
+        s.push_str(&a.to_string_lossy());
+    }
+    s
+}
+
 /// Nearest-rank percentile (sorts in place); NaN for an empty sample.
 pub(super) fn percentile(v: &mut [f64], q: f64) -> f64 {
     if v.is_empty() {

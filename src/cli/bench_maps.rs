@@ -248,14 +248,8 @@ pub(super) fn write_maps(a: &Path, b: &Path, blocks: usize, journal: usize, poin
 
 /// Restart of `dir` in a fresh process (`bgkmap bench restart`), for clean memory figures.
 pub(super) fn restart_in_child(dir: &Path) -> Result<Value> {
-    let exe = std::env::current_exe().context("locating the bgkmap executable")?;
-    let out = std::process::Command::new(exe)
-        .args(["bench", "restart", "--json", "--data-dir"])
-        .arg(dir)
-        .output()
-        .context("running bgkmap bench restart")?;
-    ensure!(out.status.success(), "bench restart failed: {}", String::from_utf8_lossy(&out.stderr));
-    Ok(serde_json::from_slice(&out.stdout)?)
+    let args = ["bench", "restart", "--json", "--data-dir"].map(std::ffi::OsString::from);
+    super::bench::bench_in_child(&[&args[..], &[dir.as_os_str().to_owned()]].concat())
 }
 
 /// The offline exact merge of `a` and `b` into `out`, as `bgkmap merge` does it.

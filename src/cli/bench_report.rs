@@ -4,12 +4,12 @@
 //! alike. The summary is the README's table: per figure the median of the rounds, their range,
 //! how many rounds met the target, and a verdict from those counts.
 
-use anyhow::{Context, Result, bail};
+use super::bench::{bench_in_child, command_text};
+use anyhow::{Context, Result};
 use clap::Args;
 use serde_json::{Value, json};
 use std::ffi::OsString;
 use std::path::PathBuf;
-use std::process::{Command, Stdio};
 
 #[derive(Debug, Args)]
 pub struct ReportArgs {
@@ -218,28 +218,26 @@ pub fn run(a: ReportArgs) -> Result<()> {
         // Before the benches' minutes, not after them.
         std::fs::File::create(path).with_context(|| format!("cannot write {}", path.display()))?;
     }
-    let exe = std::env::current_exe().context("cannot find this binary to run the benches")?;
     let benches = benches(&a);
     let mut runs: Vec<Vec<Value>> = benches.iter().map(|_| Vec::new()).collect();
     for round in 1..=a.rounds {
         for ((name, args), out) in benches.iter().zip(&mut runs) {
             eprintln!("round {round}/{}: bench {name}", a.rounds);
-            out.push(run_bench(&exe, args).with_context(|| format!("bench {name}, round {round}"))?);
+            out.push(bench_in_child(args).with_context(|| format!("bench {name}, round {round}"))?);
         }
     }
-    let rows = rows();
-    let summaries: Vec<Value> = rows
+    let by_bench: serde_json::Map<String, Value> =
+        benches.iter().zip(runs).map(|((n, _), v)| (n.to_string(), Value::Array(v))).collect();
+    let summaries: Vec<Value> = rows()
         .iter()
         .map(|r| {
-            let i = benches.iter().position(|(n, _)| *n == r.bench).unwrap_or(usize::MAX);
-            let values: Vec<f64> = runs.get(i).into_iter().flatten().filter_map(|v| (r.value)(v)).collect();
+            let runs = by_bench.get(r.bench).and_then(Value::as_array).into_iter().flatten();
+            let values: Vec<f64> = runs.filter_map(r.value).collect();
             summarise(r, &values, a.quick)
         })
         .collect();
     let machine = machine();
     let commands: Vec<String> = benches.iter().map(|(_, args)| command_text(args)).collect();
-    let by_bench: serde_json::Map<String, Value> =
-        benches.iter().zip(runs).map(|((n, _), v)| (n.to_string(), Value::Array(v))).collect();
     let v = json!({
         "bench": "report",
         "rounds": a.rounds,
@@ -262,31 +260,6 @@ pub fn run(a: ReportArgs) -> Result<()> {
         println!("  {c}");
     }
     Ok(())
-}
-
-/// Runs `bgkmap <args>` and returns the JSON object it printed last.
-fn run_bench(exe: &std::path::Path, args: &[OsString]) -> Result<Value> {
-    let out = Command::new(exe).args(args).stdin(Stdio::null()).stderr(Stdio::piped()).output()?;
-    if !out.status.success() {
-        bail!(
-            "{} failed ({}): {}",
-            command_text(args),
-            out.status,
-            String::from_utf8_lossy(&out.stderr).trim()
-        );
-    }
-    let text = String::from_utf8_lossy(&out.stdout);
-    let last = text.lines().rev().find(|l| l.trim_start().starts_with('{')).unwrap_or_default();
-    serde_json::from_str(last).with_context(|| format!("{} printed no JSON object", command_text(args)))
-}
-
-fn command_text(args: &[OsString]) -> String {
-    let mut s = String::from("bgkmap");
-    for a in args {
-        s.push(' ');
-        s.push_str(&a.to_string_lossy());
-    }
-    s
 }
 
 /// A row's figures over the rounds: median, range, rounds meeting the target, verdict.
