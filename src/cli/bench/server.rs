@@ -2,10 +2,10 @@
 //! transports (gRPC and HTTP JSON), with the in-process query as the reference. Measured figures
 //! only; nothing here asserts on speed.
 
-use super::bench::percentile;
-use super::bench_world::random_direction;
-use super::serve::{Running, ServerConfig, runtime, start};
+use super::common::{MIN_BUSY, MIN_CALLS, TempDir, percentile};
+use super::world::random_direction;
 use crate::api::pb;
+use crate::cli::serve::{Running, ServerConfig, runtime, start};
 use crate::sim::{Lidar, SimScan, simulate};
 use anyhow::{Context, Result, bail, ensure};
 use clap::Args;
@@ -13,8 +13,6 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde_json::{Value, json};
 use std::net::SocketAddr;
-use std::path::PathBuf;
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 use tokio::io::{AsyncBufReadExt, AsyncReadExt, AsyncWriteExt, BufReader};
 use tokio::net::TcpStream;
@@ -43,9 +41,6 @@ const ROOM: [f64; 3] = [10.0, 12.0, 3.0];
 const RAYS_PER_CALL: usize = 10_000;
 const HTTP_POINTS_PER_CALL: usize = 10_000;
 const RAY_RANGE_M: f64 = 8.0;
-/// A throughput run lasts until both: this much time in calls and this many calls.
-pub(super) const MIN_BUSY: Duration = Duration::from_secs(1);
-pub(super) const MIN_CALLS: usize = 5;
 /// Distinct request payloads cycled through in a throughput run.
 const DISTINCT_BATCHES: usize = 4;
 /// Background ingest while measuring latency under ingest: one scan per period.
@@ -172,7 +167,7 @@ async fn measure(running: &Running, a: &ServerBenchArgs, sim: &[SimScan]) -> Res
 }
 
 pub(super) async fn connect(addr: SocketAddr) -> Result<Client> {
-    use super::serve::{GRPC_CONNECTION_WINDOW, GRPC_MAX_FRAME, GRPC_STREAM_WINDOW};
+    use crate::cli::serve::{GRPC_CONNECTION_WINDOW, GRPC_MAX_FRAME, GRPC_STREAM_WINDOW};
     let endpoint = tonic::transport::Endpoint::from_shared(format!("http://{addr}"))?
         .tcp_nodelay(true)
         .initial_stream_window_size(GRPC_STREAM_WINDOW)
@@ -454,34 +449,6 @@ impl HttpConnection {
             bail!("POST {path}: HTTP {status:?}: {}", String::from_utf8_lossy(&answer));
         }
         Ok(answer)
-    }
-}
-
-/// A fresh directory under the system temp dir, removed (with its contents) on drop.
-#[derive(Debug)]
-pub(super) struct TempDir(pub(super) PathBuf);
-
-impl TempDir {
-    pub(super) fn new() -> Result<Self> {
-        static NEXT: AtomicU64 = AtomicU64::new(0);
-        let nanos = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map_or(0, |d| d.subsec_nanos());
-        let name = format!(
-            "bgkmap-bench-server-{}-{nanos}-{}",
-            std::process::id(),
-            NEXT.fetch_add(1, Ordering::Relaxed)
-        );
-        let path = std::env::temp_dir().join(name);
-        std::fs::create_dir_all(std::env::temp_dir())?;
-        std::fs::create_dir(&path).with_context(|| format!("{}: cannot create", path.display()))?;
-        Ok(Self(path))
-    }
-}
-
-impl Drop for TempDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
     }
 }
 

@@ -11,9 +11,10 @@
 //! The data directory is created under `--dir` (default: the current directory, so fsync hits
 //! the real disk, not a tmpfs) and removed afterwards. Measured figures only; nothing asserts.
 
-use super::bench_maps::{Cleanup, merge, restart_in_child, scans_of, write_maps};
-use super::serve::{ServerConfig, runtime, start};
+use super::common::Cleanup;
+use super::maps::{merge, restart_in_child, scans_of, write_maps};
 use crate::api::pb;
+use crate::cli::serve::{ServerConfig, runtime, start};
 use crate::core::RawScan;
 use anyhow::{Context, Result, ensure};
 use clap::Args;

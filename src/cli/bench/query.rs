@@ -1,15 +1,14 @@
-//! `bgkmap bench query`: query speed on a large map (the outdoor drive of [`super::bench_world`],
+//! `bgkmap bench query`: query speed on a large map (the outdoor drive of [`super::world`],
 //! well over a million cells with evidence), in-process and through every transport, with the
 //! same seeded workload: batched points, single-point latency, 1 m and 10 m boxes, 8 m and 30 m
-//! rays. Each transport (in-process, gRPC, HTTP, zenoh) is one [`QueryTransport`]. Measured
+//! rays. Each transport (in-process, gRPC, HTTP, zenoh) is one [`QueryTransport`] (in [`super::query_net`]). Measured
 //! figures only; nothing asserts speed.
 
-use super::bench::percentile;
-use super::bench_query_net::{Grpc, Http, InProcess, Zenoh, latencies_under_ingest};
-use super::bench_server::{MIN_BUSY, MIN_CALLS, TempDir};
-use super::bench_world::{Workload, build_map, outdoor_params, outdoor_scans};
-use super::serve::{ServerConfig, runtime, start};
+use super::common::{MIN_BUSY, MIN_CALLS, TempDir, percentile};
+use super::query_net::{Grpc, Http, InProcess, MAP, QueryTransport, Zenoh, latencies_under_ingest};
+use super::world::{Workload, build_map, outdoor_params, outdoor_scans};
 use crate::api::zenoh_transport::ZenohConfig;
+use crate::cli::serve::{ServerConfig, runtime, start};
 use crate::sim::SimScan;
 use anyhow::{Result, ensure};
 use clap::Args;
@@ -40,22 +39,6 @@ pub struct QueryBenchArgs {
     /// Print one JSON object.
     #[arg(long)]
     pub json: bool,
-}
-
-pub(super) const MAP: &str = "bench";
-
-/// A query transport under test. Every call answers how many items (points, cells, rays) the
-/// answer held, so a run can check it got a full answer.
-pub(super) trait QueryTransport {
-    fn name(&self) -> &'static str;
-    /// Batch `i` of [`Workload::point_batches`].
-    async fn points(&mut self, w: &Workload, i: usize) -> Result<usize>;
-    /// Single point `i` of [`Workload::singles`].
-    async fn single(&mut self, w: &Workload, i: usize) -> Result<usize>;
-    /// Box `i` of edge kind `kind` of [`Workload::boxes`].
-    async fn boxed(&mut self, w: &Workload, kind: usize, i: usize) -> Result<usize>;
-    /// Ray batch `i` of length kind `kind` of [`Workload::rays`].
-    async fn rays(&mut self, w: &Workload, kind: usize, i: usize) -> Result<usize>;
 }
 
 /// A call a throughput run repeats.

@@ -1,10 +1,10 @@
-//! `bgkmap bench report`: every figure issue 6 sets a target for, measured by the bench commands
+//! `bgkmap bench report`: every figure with a target, measured by the bench commands
 //! themselves, run as a user runs them (child processes of this binary, one at a time), in
 //! rounds: each round runs every bench once, so a host whose speed drifts weighs on every row
 //! alike. The summary is the README's table: per figure the median of the rounds, their range,
 //! how many rounds met the target, and a verdict from those counts.
 
-use super::bench::{bench_in_child, command_text};
+use super::common::{bench_in_child, command_text};
 use anyhow::{Context, Result};
 use clap::Args;
 use serde_json::{Value, json};

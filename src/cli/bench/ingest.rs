@@ -1,45 +1,16 @@
-//! `bgkmap bench`: measured figures (never timed tests).
+//! `bgkmap bench ingest`: scan integration (training data, evidence, map update) timed per scan
+//! and per pass, on one or several workers; scans are loaded or simulated before timing.
 
-use super::args::{ScanArgs, load_scan};
+use super::common::percentile;
+use super::world::{as_scans, outdoor_scans};
+use crate::cli::args::{ScanArgs, load_scan};
 use crate::core::{EvidenceMap, Integrator, MapParams, Workers, integrate_parallel};
 use crate::io::scan::Scan;
 use crate::sim::{Lidar, simulate};
 use anyhow::Result;
-use clap::{Args, Subcommand};
+use clap::Args;
 use std::path::PathBuf;
 use std::time::Instant;
-
-#[derive(Debug, Subcommand)]
-pub enum BenchCommand {
-    /// Scan integration (training data + evidence + map update); files are loaded before timing.
-    Ingest(IngestArgs),
-    /// The map server in-process on loopback: ingest, gRPC / HTTP query throughput and latency.
-    #[cfg(feature = "server")]
-    Server(super::bench_server::ServerBenchArgs),
-    /// The map server's zenoh session in-process on loopback: scans/s from several publishers,
-    /// point-query throughput over zenoh next to gRPC.
-    #[cfg(feature = "zenoh")]
-    Zenoh(super::bench_zenoh::ZenohBenchArgs),
-    /// Durable maps: ingest acknowledged after fsync, restart time and memory of a large map,
-    /// exact merge of two.
-    #[cfg(feature = "server")]
-    Durable(super::bench_durable::DurableBenchArgs),
-    /// Queries on a map of over a million cells (a simulated 64-beam drive): in-process, gRPC,
-    /// HTTP and zenoh — batched points, single-point latency (gRPC also while ingesting), boxes, rays.
-    #[cfg(feature = "server")]
-    Query(super::bench_query::QueryBenchArgs),
-    /// Ingest and query time as the map grows from 10³ to 10⁶ blocks; memory per cell in RAM
-    /// and on disk.
-    Scale(super::bench_scale::ScaleArgs),
-    /// Exact offline merge of two large maps (half their blocks overlap).
-    Merge(super::bench_maps::MergeArgs),
-    /// Opens a data directory as a restarting server does (a large generated map unless
-    /// `--data-dir` is given): time and memory, in a fresh process.
-    Restart(super::bench_maps::RestartArgs),
-    /// Every figure with a target (issue 6), each bench run in turn for some rounds, as the
-    /// README's Markdown table: per figure the median, range and a verdict.
-    Report(super::bench_report::ReportArgs),
-}
 
 #[derive(Debug, Args)]
 pub struct IngestArgs {
@@ -73,24 +44,6 @@ pub struct IngestArgs {
     pub json: bool,
     #[command(flatten)]
     pub scan: ScanArgs,
-}
-
-pub fn run(cmd: BenchCommand) -> Result<()> {
-    match cmd {
-        BenchCommand::Ingest(a) => ingest(a),
-        #[cfg(feature = "server")]
-        BenchCommand::Server(a) => super::bench_server::run(a),
-        #[cfg(feature = "zenoh")]
-        BenchCommand::Zenoh(a) => super::bench_zenoh::run(a),
-        #[cfg(feature = "server")]
-        BenchCommand::Durable(a) => super::bench_durable::run(a),
-        #[cfg(feature = "server")]
-        BenchCommand::Query(a) => super::bench_query::run(a),
-        BenchCommand::Scale(a) => super::bench_scale::run(a),
-        BenchCommand::Merge(a) => super::bench_maps::run_merge(a),
-        BenchCommand::Restart(a) => super::bench_maps::run_restart(a),
-        BenchCommand::Report(a) => super::bench_report::run(a),
-    }
 }
 
 /// What [`timed_scan`] records of a scan.
@@ -156,9 +109,9 @@ fn ingest_pass(workers: &mut Workers, scans: &[Scan], params: MapParams, split: 
     PassTime { wall_ms: (t_end - t_pass).as_secs_f64() * 1e3, scans: timed, start: t_pass, end: t_end }
 }
 
-fn ingest(a: IngestArgs) -> Result<()> {
+pub fn run(a: IngestArgs) -> Result<()> {
     let (scans, source) = if let Some(n) = a.lidar64 {
-        let scans = super::bench_world::as_scans(super::bench_world::outdoor_scans(n.max(1)));
+        let scans = as_scans(outdoor_scans(n.max(1)));
         (scans, format!("simulated 64-beam LiDAR drive (seed 0, {} scans, town of 4×4 blocks)", n.max(1)))
     } else if a.scans.is_empty() {
         let (_, sim) = simulate(0, 12, &Lidar::default());
@@ -179,15 +132,9 @@ fn ingest(a: IngestArgs) -> Result<()> {
     let mut workers = Workers::new(params, threads);
     // With several workers, passes on a single worker alternate with theirs, so the speed-up
     // compares passes taken moments apart: on a shared host the load drifts by tens of percent
-    // between runs (two runs of one binary gave 1231 and 1884 scans/s on one worker). They
-    // alternate in runs (`--alternate-every`, 10 passes, ~25–40 ms of the sample scans), as a
-    // server ingests: pass by pass, the helper's vCPU halted during every one-worker pass and
-    // each pass found the other's map out of the caches, which no steady ingest does. In four
-    // interleaved rounds (2026-12-07, nineteenth session, AMD EPYC VM, `--repeat 300`), pass by
-    // pass gave 1.62–1.64× in the three calm ones and runs of 10 gave 1.84–1.94× (runs of 50
-    // 1.87–1.91×), the helper as fast per training point as the calling thread (62 ns, against
-    // 72–78 pass by pass) and adding its map 0.09–0.12 ms instead of 0.15–0.17; the busy
-    // round gave 1.49× and 1.42×.
+    // between runs. They alternate in runs (`--alternate-every`, 10 passes), as a server
+    // ingests, not pass by pass: then each pass finds the other's map out of the caches and an
+    // idle helper thread's vCPU halts during every one-worker pass, which no steady ingest does.
     let mut solo_workers = (threads > 1).then(|| Workers::new(params, 1));
     let mut per_scan_ms = Vec::new();
     // Per worker that runs scans (the calling thread's first), their time and training points: with
@@ -344,49 +291,6 @@ fn of_thread<T>(
         }
     };
     &mut per_thread[at].1
-}
-
-/// Runs `bgkmap <args>` (this binary) in a fresh process and returns the JSON object it printed
-/// last; its standard error becomes the error if it fails.
-pub(super) fn bench_in_child(args: &[std::ffi::OsString]) -> Result<serde_json::Value> {
-    use anyhow::{Context, bail};
-    let exe = std::env::current_exe().context("locating the bgkmap executable")?;
-    let out = std::process::Command::new(exe)
-        .args(args)
-        .stdin(std::process::Stdio::null())
-        .output()
-        .with_context(|| format!("running {}", command_text(args)))?;
-    if !out.status.success() {
-        bail!(
-            "{} failed ({}): {}",
-            command_text(args),
-            out.status,
-            String::from_utf8_lossy(&out.stderr).trim()
-        );
-    }
-    let text = String::from_utf8_lossy(&out.stdout);
-    let last = text.lines().rev().find(|l| l.trim_start().starts_with('{')).unwrap_or_default();
-    serde_json::from_str(last).with_context(|| format!("{} printed no JSON object", command_text(args)))
-}
-
-/// `bgkmap` and `args` as one line, for messages.
-pub(super) fn command_text(args: &[std::ffi::OsString]) -> String {
-    let mut s = String::from("bgkmap");
-    for a in args {
-        s.push(' ');
-        s.push_str(&a.to_string_lossy());
-    }
-    s
-}
-
-/// Nearest-rank percentile (sorts in place); NaN for an empty sample.
-pub(super) fn percentile(v: &mut [f64], q: f64) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(f64::total_cmp);
-    let rank = ((q * v.len() as f64).ceil() as usize).clamp(1, v.len());
-    v[rank - 1]
 }
 
 fn lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {

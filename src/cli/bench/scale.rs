@@ -11,17 +11,16 @@
 //!
 //! The levels' maps are all built first and their passes then alternate (a pass over the room
 //! on each level in turn), so a host whose speed drifts during the run weighs on every level
-//! alike: with each level's passes run back to back, a busy spell during one level's passes
-//! read as growth (or shrinkage) with map size.
+//! alike instead of reading as growth (or shrinkage) with map size.
 //!
 //! Memory: RAM per cell is the map's own layout — per block the evidence, the `Arc` counters
-//! and a hash-table slot at its lowest load (1/2) — divided by its cells (resident-set deltas
-//! proved too noisy to attribute); disk per cell is the size of the saved map file. "Allocated cells" are all 512 cells of each
-//! allocated block; "cells with evidence" those holding any.
+//! and a hash-table slot at its lowest load (1/2) — divided by its cells, because the process's
+//! resident set mixes in allocator and runtime memory; disk per cell is the size of the saved
+//! map file. "Allocated cells" are all 512 cells of each allocated block; "cells with evidence"
+//! those holding any.
 
-use super::bench::percentile;
-use super::bench_maps::Cleanup;
-use super::bench_world::{RaySpec, build_map, outdoor_params, outdoor_scans, random_direction};
+use super::common::{Cleanup, percentile};
+use super::world::{RaySpec, build_map, outdoor_params, outdoor_scans, random_direction};
 use crate::core::key::BLOCK_CELLS;
 use crate::core::query::{StopAt, cast_ray, query_points};
 use crate::core::{BlockKey, EvidenceMap, Integrator, MapParams};

@@ -2,12 +2,11 @@
 //! zenoh peers of its own: scans per second put by several publishers at once, and point-query
 //! throughput over zenoh next to gRPC on the same server and payloads. Measured figures only.
 
-use super::bench_server::{
-    MAP, Meter, TempDir, connect, grpc_points, points_request, random_batches, xyz_f32,
-};
-use super::serve::{Running, ServerConfig, runtime, start};
+use super::common::TempDir;
+use super::server::{MAP, Meter, connect, grpc_points, points_request, random_batches, xyz_f32};
 use crate::api::pb;
 use crate::api::zenoh_transport::ZenohConfig;
+use crate::cli::serve::{Running, ServerConfig, runtime, start};
 use crate::sim::{Lidar, SimScan, simulate};
 use anyhow::{Context, Result, bail, ensure};
 use clap::Args;

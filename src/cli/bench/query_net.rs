@@ -1,11 +1,11 @@
-//! The transports of `bgkmap bench query`: in-process (the reference), gRPC, HTTP JSON and zenoh, each
-//! with its requests encoded once up front so a run times the server, not the client's
-//! encoding; and gRPC single-point latency while scans are being ingested.
+//! The transports of `bgkmap bench query` and the [`QueryTransport`] trait they share:
+//! in-process (the reference), gRPC, HTTP JSON and zenoh, each with its requests encoded once up
+//! front so a run times the server, not the client's encoding; and gRPC single-point latency
+//! while scans are being ingested.
 
-use super::bench::percentile;
-use super::bench_query::{MAP, QueryTransport};
-use super::bench_server::{Client, HttpConnection, connect, xyz_f32};
-use super::bench_world::Workload;
+use super::common::percentile;
+use super::server::{Client, HttpConnection, connect, xyz_f32};
+use super::world::Workload;
 use crate::api::pb;
 use crate::core::query::{BoxQuery, StopAt, cast_ray, for_each_point, query_box, query_points};
 use crate::core::{EvidenceMap, Thresholds};
@@ -14,6 +14,22 @@ use anyhow::{Context, Result, ensure};
 use serde_json::json;
 use std::net::SocketAddr;
 use std::time::{Duration, Instant};
+
+pub(super) const MAP: &str = "bench";
+
+/// A query transport under test. Every call answers how many items (points, cells, rays) the
+/// answer held, so a run can check it got a full answer.
+pub(super) trait QueryTransport {
+    fn name(&self) -> &'static str;
+    /// Batch `i` of [`Workload::point_batches`].
+    async fn points(&mut self, w: &Workload, i: usize) -> Result<usize>;
+    /// Single point `i` of [`Workload::singles`].
+    async fn single(&mut self, w: &Workload, i: usize) -> Result<usize>;
+    /// Box `i` of edge kind `kind` of [`Workload::boxes`].
+    async fn boxed(&mut self, w: &Workload, kind: usize, i: usize) -> Result<usize>;
+    /// Ray batch `i` of length kind `kind` of [`Workload::rays`].
+    async fn rays(&mut self, w: &Workload, kind: usize, i: usize) -> Result<usize>;
+}
 
 /// Largest box answer accepted in-process (the server's default limit).
 const MAX_BOX_CELLS: u64 = 4_000_000;
@@ -198,7 +214,7 @@ pub(super) struct Zenoh {
 impl Zenoh {
     /// A peer connected to the server's zenoh `locator`.
     pub(super) async fn connect(locator: &str, w: &Workload) -> Result<Self> {
-        let session = super::bench_zenoh::peer(locator)?;
+        let session = super::zenoh::peer(locator)?;
         let querier = async |what: &str| {
             let key = format!("bgkmap/{MAP}/query/{what}");
             session

@@ -2,6 +2,7 @@
 //! (tiled from the blocks of real simulated scans, with a journal of raw scans), the time and
 //! memory to open them as the server does on restart, and the time of an exact offline merge.
 
+use super::common::Cleanup;
 use crate::core::evidence::BlockEvidence;
 use crate::core::{BlockKey, EvidenceMap, Integrator, MapParams, PointFrame, Pose, RawScan};
 use crate::service::{MapService, ServiceConfig};
@@ -47,15 +48,6 @@ pub struct RestartArgs {
 pub struct MergeArgs {
     #[command(flatten)]
     pub large: LargeMapArgs,
-}
-
-/// Removes a generated directory on the way out.
-pub(super) struct Cleanup(pub(super) PathBuf);
-
-impl Drop for Cleanup {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
-    }
 }
 
 fn generated_dir(a: &LargeMapArgs, what: &str) -> Result<(PathBuf, Cleanup)> {
@@ -249,7 +241,7 @@ pub(super) fn write_maps(a: &Path, b: &Path, blocks: usize, journal: usize, poin
 /// Restart of `dir` in a fresh process (`bgkmap bench restart`), for clean memory figures.
 pub(super) fn restart_in_child(dir: &Path) -> Result<Value> {
     let args = ["bench", "restart", "--json", "--data-dir"].map(std::ffi::OsString::from);
-    super::bench::bench_in_child(&[&args[..], &[dir.as_os_str().to_owned()]].concat())
+    super::common::bench_in_child(&[&args[..], &[dir.as_os_str().to_owned()]].concat())
 }
 
 /// The offline exact merge of `a` and `b` into `out`, as `bgkmap merge` does it.
