@@ -5,7 +5,7 @@
 //! journaled but not applied (a crash before integration), so its evidence comes from replay.
 //!
 //! Regenerate (only when introducing a new format version, as a new fixture file):
-//! `BGKMAP_WRITE_FIXTURE=1 cargo test --test format_fixture -- --ignored`.
+//! `BGKMAP_WRITE_FIXTURE=1 cargo test --test integration format_fixture -- --ignored`.
 #![allow(clippy::unwrap_used)]
 
 use bgkmap::core::{EvidenceMap, Integrator, MapParams, PointFrame, Pose, RawScan};

@@ -4,7 +4,7 @@
 // The tests run the `bgkmap` binary, which needs the `cli` feature.
 #![cfg(feature = "cli")]
 
-mod common;
+use crate::common;
 
 use common::{build, export_csv, json_number, parse_csv, run_ok, run_ok_text, sample_dir};
 use std::path::Path;

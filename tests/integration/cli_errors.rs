@@ -4,7 +4,7 @@
 // The tests run the `bgkmap` binary, which needs the `cli` feature.
 #![cfg(feature = "cli")]
 
-mod common;
+use crate::common;
 
 use bgkmap::io::pcd::read_pcd;
 use common::{assert_no_output, build, export_csv, run_fail, run_fail_code, run_ok, simulate};

@@ -3,7 +3,7 @@
 //! whole number of applied scans — never of a partly applied scan.
 #![cfg(feature = "server")]
 
-mod common;
+use crate::common;
 
 use bgkmap::api::pb;
 use bgkmap::api::pb::map_service_client::MapServiceClient;

@@ -2,7 +2,7 @@
 //! --slice z=H`, decoded and checked pixel by pixel against the maps they show.
 #![allow(clippy::unwrap_used)]
 
-mod common;
+use crate::common;
 
 use common::{build, parse_csv, run_fail, run_ok_text, simulate};
 use std::path::Path;

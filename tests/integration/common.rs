@@ -2,7 +2,7 @@
 //! temporary directory, check failures, write a simulated dataset, and read the few JSON / CSV
 //! fields the tests need (no JSON crate: the outputs are flat objects).
 #![allow(clippy::unwrap_used)]
-#![allow(dead_code)] // each test crate uses a different subset
+#![allow(dead_code)] // builds with fewer features leave some helpers unused
 
 use std::ffi::OsStr;
 use std::path::{Path, PathBuf};

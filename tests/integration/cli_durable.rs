@@ -3,7 +3,7 @@
 //! they share scans, `retract` and `repose` give the clean builds, `check` reports a sound file.
 #![cfg(feature = "cli")]
 
-mod common;
+use crate::common;
 
 use bgkmap::core::{PointFrame, Pose, RawScan};
 use bgkmap::io::pcd::{read_pcd, write_pcd_binary};

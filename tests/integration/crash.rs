@@ -6,7 +6,7 @@
 #![cfg(feature = "server")]
 #![allow(clippy::unwrap_used)]
 
-mod common;
+use crate::common;
 
 use bgkmap::api::pb;
 use bgkmap::api::pb::map_service_client::MapServiceClient;

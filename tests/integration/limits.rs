@@ -4,7 +4,7 @@
 //! changes the map.
 #![cfg(feature = "server")]
 
-mod common;
+use crate::common;
 
 use bgkmap::api::pb;
 use bgkmap::api::pb::map_service_client::MapServiceClient;
