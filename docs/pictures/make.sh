@@ -13,8 +13,8 @@ trap 'rm -rf "$tmp"' EXIT
 "$BGKMAP_BIN" simulate --out "$tmp/sim" --scans 12 --seed 3 >/dev/null
 "$BGKMAP_BIN" build --out "$tmp/truncate.bgkmap" "$tmp"/sim/scan_*.pcd
 "$BGKMAP_BIN" build --out "$tmp/drop.bgkmap" --range-mode drop "$tmp"/sim/scan_*.pcd
-"$BGKMAP_BIN" eval "$tmp/truncate.bgkmap" "$tmp/drop.bgkmap" --truth "$tmp/sim/truth.bt" --roc tests/pictures/roc.png
+"$BGKMAP_BIN" eval "$tmp/truncate.bgkmap" "$tmp/drop.bgkmap" --truth "$tmp/sim/truth.bt" --roc docs/pictures/roc.png
 
 (cd tests/browser && { [ -d node_modules/playwright-core ] || npm ci --no-audit --no-fund --ignore-scripts --loglevel=error; })
-node tests/browser/screenshot.mjs tests/pictures/viewer.png
-ls -l tests/pictures/*.png
+node tests/browser/screenshot.mjs docs/pictures/viewer.png
+ls -l docs/pictures/*.png
