@@ -1,12 +1,14 @@
 #![allow(clippy::unwrap_used)]
 //! Acceptance tests on la3dm's `sim_structured` sample (12 PCD scans with VIEWPOINT and the
-//! ground truth `map.bt`), found at `../shared/data/la3dm/sim_structured`; skipped when absent.
+//! ground truth `map.bt`), found at `../shared/data/la3dm/sim_structured`. Without it they are
+//! ignored (reported as skipped), and [`present_when_ci_is_set`] fails if `CI` is set, so CI
+//! cannot pass without having run them.
 // The tests run the `bgkmap` binary, which needs the `cli` feature.
 #![cfg(feature = "cli")]
 
 use crate::common;
 
-use common::{build, export_csv, json_number, parse_csv, run_ok, run_ok_text, sample_dir};
+use common::{SAMPLE_DIR, build, export_csv, json_number, parse_csv, run_ok, run_ok_text, sample_dir};
 use std::path::Path;
 
 fn scans(dir: &Path) -> Vec<String> {
@@ -21,8 +23,9 @@ fn eval_json(dir: &Path, map: &str, truth: &Path) -> (f64, f64) {
 }
 
 #[test]
+#[cfg_attr(not(bgkmap_sample_data), ignore = "needs the sample data ../shared/data/la3dm")]
 fn sample_order_merge_and_accuracy() {
-    let Some(data) = sample_dir() else { return };
+    let data = sample_dir();
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
     let scans = scans(&data);
@@ -50,8 +53,9 @@ fn sample_order_merge_and_accuracy() {
 /// With la3dm's range handling (`drop`: hits beyond max range are discarded), the AUC matches
 /// the exact-BGK reference of algorithm.md (0.9035): our inference is the paper's.
 #[test]
+#[cfg_attr(not(bgkmap_sample_data), ignore = "needs the sample data ../shared/data/la3dm")]
 fn sample_drop_mode_matches_exact_bgk_reference() {
-    let Some(data) = sample_dir() else { return };
+    let data = sample_dir();
     let tmp = tempfile::tempdir().unwrap();
     let dir = tmp.path();
     build(dir, "drop.bgkmap", &["--max-range", "8", "--range-mode", "drop"], &scans(&data));
@@ -59,4 +63,17 @@ fn sample_drop_mode_matches_exact_bgk_reference() {
     // with `--sub-cells 0`.
     let (auc, _) = eval_json(dir, "drop.bgkmap", &data.join("map.bt"));
     assert!((auc - 0.9035).abs() <= 0.002, "auc {auc} is not within 0.9035 ± 0.002");
+}
+
+/// CI must run the tests above: with `CI` set (to anything but `false` or `0`), missing sample
+/// data is a failure, not two skipped tests. Built as if the data were missing
+/// (`BGKMAP_SAMPLE_DATA=absent`, see build.rs), this fails under `CI=1` too.
+#[test]
+fn present_when_ci_is_set() {
+    let ci = std::env::var("CI").is_ok_and(|v| !matches!(v.trim(), "" | "0" | "false"));
+    let present = cfg!(bgkmap_sample_data) && Path::new(SAMPLE_DIR).is_dir();
+    assert!(
+        present || !ci,
+        "CI is set but the sample data is missing: the tests that need {SAMPLE_DIR} were skipped"
+    );
 }
