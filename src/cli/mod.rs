@@ -4,20 +4,6 @@
 
 mod args;
 mod bench;
-#[cfg(feature = "server")]
-mod bench_durable;
-mod bench_maps;
-#[cfg(feature = "server")]
-mod bench_query;
-#[cfg(feature = "server")]
-mod bench_query_net;
-mod bench_report;
-mod bench_scale;
-#[cfg(feature = "server")]
-mod bench_server;
-mod bench_world;
-#[cfg(feature = "zenoh")]
-mod bench_zenoh;
 mod build;
 #[cfg(feature = "server")]
 mod demo;

@@ -383,13 +383,10 @@ mod tests {
     use super::*;
     use proptest::prelude::*;
 
-    fn sample_map() -> Option<Vec<u8>> {
+    /// The sample data's `map.bt`; the tests calling this are ignored unless build.rs found it.
+    fn sample_map() -> Vec<u8> {
         let path = format!("{}/../shared/data/la3dm/sim_structured/map.bt", env!("CARGO_MANIFEST_DIR"));
-        let bytes = std::fs::read(&path).ok();
-        if bytes.is_none() {
-            eprintln!("skipping: {path} not found");
-        }
-        bytes
+        std::fs::read(&path).unwrap_or_else(|e| panic!("{path}: {e}"))
     }
 
     fn small_tree() -> BtTree {
@@ -398,8 +395,9 @@ mod tests {
     }
 
     #[test]
+    #[cfg_attr(not(bgkmap_sample_data), ignore = "needs the sample data ../shared/data/la3dm")]
     fn reads_sample_map() {
-        let Some(bytes) = sample_map() else { return };
+        let bytes = sample_map();
         let tree = read_bt(&bytes).unwrap();
         assert_eq!(tree.resolution, 0.1);
         assert_eq!((tree.node_count(), tree.leaves.len(), tree.inner_nodes), (171_287, 138_477, 32_810));
@@ -426,8 +424,9 @@ mod tests {
     /// bytes. It does give, byte for byte, what liboctomap 1.9.7 `writeBinary` (max-likelihood +
     /// prune) writes for the same map: 131 839 nodes, 55 899 bytes, CRC-32 0xf8a82ddb.
     #[test]
+    #[cfg_attr(not(bgkmap_sample_data), ignore = "needs the sample data ../shared/data/la3dm")]
     fn sample_cells_rebuilt_with_pruning_match_liboctomap_write_binary() {
-        let Some(bytes) = sample_map() else { return };
+        let bytes = sample_map();
         let tree = read_bt(&bytes).unwrap();
         let t0 = std::time::Instant::now();
         let rebuilt = BtTree::from_cells(0.1, tree.cells(), true).unwrap();

@@ -396,13 +396,10 @@ mod tests {
 
     const VP: [f64; 7] = [1.5, -2.0, 0.25, 1.0, 0.0, 0.0, 0.0];
 
-    fn sample(name: &str) -> Option<Vec<u8>> {
+    /// A file of the sample data; the tests calling this are ignored unless build.rs found it.
+    fn sample(name: &str) -> Vec<u8> {
         let path = format!("{}/../shared/data/la3dm/sim_structured/{name}", env!("CARGO_MANIFEST_DIR"));
-        let bytes = std::fs::read(&path).ok();
-        if bytes.is_none() {
-            eprintln!("skipping: {path} not found");
-        }
-        bytes
+        std::fs::read(&path).unwrap_or_else(|e| panic!("{path}: {e}"))
     }
 
     fn header(fields: &str, sizes: &str, types: &str, counts: &str, n: usize, mode: &str) -> Vec<u8> {
@@ -414,8 +411,9 @@ mod tests {
     }
 
     #[test]
+    #[cfg_attr(not(bgkmap_sample_data), ignore = "needs the sample data ../shared/data/la3dm")]
     fn reads_sample_scan() {
-        let Some(bytes) = sample("sim_structured_1.pcd") else { return };
+        let bytes = sample("sim_structured_1.pcd");
         let cloud = read_pcd(&bytes).unwrap();
         assert_eq!(
             (cloud.points.len(), cloud.width, cloud.height, cloud.dropped_nonfinite),
@@ -431,8 +429,9 @@ mod tests {
     }
 
     #[test]
+    #[cfg_attr(not(bgkmap_sample_data), ignore = "needs the sample data ../shared/data/la3dm")]
     fn truncated_sample_is_a_clear_error() {
-        let Some(bytes) = sample("sim_structured_1.pcd") else { return };
+        let bytes = sample("sim_structured_1.pcd");
         let start = bytes.windows(12).position(|w| w == b"DATA binary\n").unwrap() + 12;
         let err = read_pcd(&bytes[..start + 1200]).unwrap_err();
         assert_eq!(

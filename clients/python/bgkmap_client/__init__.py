@@ -12,7 +12,8 @@ See :class:`Client` for every call; states are int codes :data:`UNKNOWN`, :data:
 :data:`OCCUPIED` (:func:`state_names` gives their names).
 """
 
-from ._client import (
+from ._client import Client
+from ._types import (
     FREE,
     OCCUPIED,
     PARAM_NAMES,
@@ -20,7 +21,6 @@ from ._client import (
     UNKNOWN,
     BgkmapError,
     BoxResult,
-    Client,
     ExportResult,
     PointsResult,
     RaysResult,

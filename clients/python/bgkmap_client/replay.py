@@ -207,7 +207,7 @@ class ZenohSink:
         if not self.ack:
             self.entity.put(payload)
             return {"applied": None, "version": None}
-        from ._client import BgkmapError
+        from ._types import BgkmapError
 
         parameters = "wait_applied" if wait_applied else None
         for reply in self.entity.get(payload=payload, parameters=parameters):
