@@ -9,7 +9,7 @@ use super::bench_query_net::{Grpc, Http, InProcess, Zenoh, latencies_under_inges
 use super::bench_server::{MIN_BUSY, MIN_CALLS, TempDir};
 use super::bench_world::{Workload, build_map, outdoor_params, outdoor_scans};
 use super::serve::{ServerConfig, runtime, start};
-use crate::api::zenoh_transport::ZenohConfig;
+use crate::api::zenoh::ZenohConfig;
 use crate::sim::SimScan;
 use anyhow::{Result, ensure};
 use clap::Args;

@@ -7,7 +7,7 @@ use super::bench_server::{
 };
 use super::serve::{Running, ServerConfig, runtime, start};
 use crate::api::pb;
-use crate::api::zenoh_transport::ZenohConfig;
+use crate::api::zenoh::ZenohConfig;
 use crate::sim::{Lidar, SimScan, simulate};
 use anyhow::{Context, Result, bail, ensure};
 use clap::Args;
