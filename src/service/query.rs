@@ -20,7 +20,7 @@ use crate::store::CorruptBlock;
 use std::sync::Arc;
 
 /// Points a point query answers on the calling thread; more move to a blocking thread, so a
-/// large batch never holds an async worker (a 10 000-point query takes about a millisecond).
+/// large batch never holds an async worker while a small one pays no thread hand-off.
 const INLINE_POINTS: usize = 10_000;
 
 /// The finest-to-coarsest span of a box query: cubes of at most 2^10 cells per edge.
@@ -280,5 +280,51 @@ impl RaysQuery {
             each(r, hit);
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::core::MapParams;
+    use crate::service::ServiceConfig;
+
+    fn service(dir: &std::path::Path, max_box_cells: u64) -> MapService {
+        let config = ServiceConfig { queries: QueryLimits { max_box_cells }, ..ServiceConfig::default() };
+        let svc = MapService::open(dir, config).unwrap();
+        svc.create_map("m", MapParams::default()).unwrap();
+        svc
+    }
+
+    #[test]
+    fn the_front_door_refuses_each_fault_by_element_and_decides_where_to_run() {
+        let dir = tempfile::tempdir().unwrap();
+        let svc = service(dir.path(), 1000);
+        assert!(matches!(svc.queries("nope"), Err(ServiceError::NotFound(_))));
+        let q = svc.queries("m").unwrap();
+        let bad = ThresholdsIn { p_free: Some(0.9), ..ThresholdsIn::default() };
+        assert!(matches!(q.thresholds(bad), Err(QueryError::Threshold { name: "p_free", .. })));
+        let th = q.thresholds(ThresholdsIn::default()).unwrap();
+
+        let nan = vec![[0.0; 3], [f64::NAN, 0.0, 0.0]];
+        assert!(matches!(q.clone().points(nan, th), Err(QueryError::NotFinite { index: 1 })));
+        let far = vec![[0.0; 3], [1e12, 0.0, 0.0], [1e12, 0.0, 0.0]];
+        let mut answered = 0;
+        let r = q.clone().points(far, th).unwrap().run(|_| answered += 1);
+        assert!(matches!(r, Err(QueryError::Outside { index: 1 })) && answered == 1, "{r:?}");
+        assert!(q.clone().points(vec![[0.0; 3]; INLINE_POINTS], th).unwrap().runs_inline());
+        assert!(!q.clone().points(vec![[0.0; 3]; INLINE_POINTS + 1], th).unwrap().runs_inline());
+
+        let cuboid =
+            |coarsen, max: f64| BoxRequest { min_world: [0.0; 3], max_world: [max; 3], state: None, coarsen };
+        assert!(matches!(q.clone().cuboid(cuboid(11, 1.0), th), Err(QueryError::Coarsen(11))));
+        let big = q.clone().cuboid(cuboid(0, 10.0), th).unwrap().run();
+        assert!(matches!(big, Err(QueryError::Box(BoxError::TooLarge { limit: 1000, .. }))), "{big:?}");
+        assert_eq!(q.clone().cuboid(cuboid(0, 0.5), th).unwrap().run().unwrap().cells.len(), 0);
+
+        let ray = |d: [f64; 3]| RayRequest { origin_world: [0.0; 3], direction_world: d, max_range_m: 1.0 };
+        let rays = q.rays(vec![ray([1.0, 0.0, 0.0]), ray([0.0; 3])], StopAt::Occupied, th);
+        let r = rays.run(|_, _| {});
+        assert!(matches!(r, Err(QueryError::Ray { index: 1, .. })), "{r:?}");
     }
 }

@@ -4,7 +4,7 @@
 //!
 //! A query converts its request ([`super::convert`]), builds the validated query at the
 //! service's front door ([`crate::service::query`]), runs it where the query says
-//! ([`crate::api::offload`]) writing the answer straight into its message, and refuses an
+//! (`api::offload`) writing the answer straight into its message, and refuses an
 //! answer over the message limit. Answers that depend on a corrupt block are `DATA_LOSS`.
 
 use super::convert::{bad, cell_state_from_pb, cell_state_to_pb, fits, push_key, query_status};

@@ -1,4 +1,4 @@
-//! zenoh transport: bgkmap as a zenoh citizen (feature `zenoh`; interop.md §1).
+//! zenoh transport: bgkmap as a zenoh citizen (feature `zenoh`).
 //!
 //! One session per server (peer or client, explicit TCP endpoints, multicast scouting off by
 //! default). Key space, `<map>` a map name:
