@@ -5,8 +5,8 @@
 
 use crate::api::grpc::{GrpcConfig, routes};
 use crate::api::http::{HttpConfig, router};
-use crate::api::zenoh_transport::{ZenohConfig, ZenohMode};
-use crate::service::{MapService, ScanLimits, ServiceConfig};
+use crate::api::zenoh::{ZenohConfig, ZenohMode};
+use crate::service::{MapService, QueryLimits, ScanLimits, ServiceConfig};
 use crate::store::Retention;
 use anyhow::{Context, Result};
 use clap::Args;
@@ -193,7 +193,7 @@ pub struct Running {
     pub zenoh_locators: Vec<String>,
     /// The zenoh transport, when enabled.
     #[cfg(feature = "zenoh")]
-    pub zenoh: Option<crate::api::zenoh_transport::ZenohTransport>,
+    pub zenoh: Option<crate::api::zenoh::ZenohTransport>,
     tasks: Vec<tokio::task::JoinHandle<Result<()>>>,
     stop: tokio::sync::watch::Sender<bool>,
 }
@@ -204,7 +204,7 @@ impl Running {
         let _ = self.stop.send(true);
         // Change streams (gRPC WatchUpdates, HTTP SSE) never end by themselves; end them so
         // the graceful shutdown does not wait for their connections forever.
-        self.service.close_feeds();
+        self.service.close_updates();
         #[cfg(feature = "zenoh")]
         if let Some(z) = self.zenoh {
             z.shutdown().await;
@@ -226,6 +226,7 @@ pub async fn start(c: &ServerConfig) -> Result<Running> {
         queue_capacity: c.queue_capacity,
         threads_per_scan: c.threads_per_scan,
         limits: ScanLimits { max_points: c.max_points, ..ScanLimits::default() },
+        queries: QueryLimits { max_box_cells: c.max_box_cells },
         max_unapplied_scans: c.max_unapplied_scans.max(1),
         retention: c.journal_retention.parse::<Retention>().map_err(anyhow::Error::msg)?,
         write_retry: std::time::Duration::from_millis(c.write_retry_ms),
@@ -248,9 +249,8 @@ pub async fn start(c: &ServerConfig) -> Result<Running> {
     let stopped = move |mut rx: tokio::sync::watch::Receiver<bool>| async move {
         let _ = rx.wait_for(|s| *s).await;
     };
-    let grpc_config = GrpcConfig { max_box_cells: c.max_box_cells, max_message_bytes: c.max_message_bytes };
-    let grpc_routes =
-        routes(service.clone(), grpc_config.clone()).await.map_err(|e| anyhow::anyhow!("{e}"))?;
+    let grpc_config = GrpcConfig { max_message_bytes: c.max_message_bytes };
+    let grpc_routes = routes(service.clone(), grpc_config).await.map_err(|e| anyhow::anyhow!("{e}"))?;
     let grpc = tokio::spawn({
         let rx = stop_rx.clone();
         async move {
@@ -264,7 +264,7 @@ pub async fn start(c: &ServerConfig) -> Result<Running> {
                 .context("gRPC server")
         }
     });
-    let http_config = HttpConfig { max_box_cells: c.max_box_cells, max_body_bytes: c.max_message_bytes };
+    let http_config = HttpConfig { max_body_bytes: c.max_message_bytes };
     let app = router(service.clone(), http_config);
     let http = tokio::spawn(async move {
         axum::serve(http_listener, app).with_graceful_shutdown(stopped(stop_rx)).await.context("HTTP server")
@@ -275,8 +275,8 @@ pub async fn start(c: &ServerConfig) -> Result<Running> {
         let zenoh = match c.zenoh.enabled {
             false => None,
             true => {
-                let calls = crate::api::calls::ProtoCalls::new(service.clone(), grpc_config.clone());
-                let started = crate::api::zenoh_transport::ZenohTransport::start(calls, &c.zenoh).await;
+                let calls = crate::api::proto::calls::ProtoCalls::new(service.clone(), c.max_message_bytes);
+                let started = crate::api::zenoh::ZenohTransport::start(calls, &c.zenoh).await;
                 Some(started.context("starting zenoh")?)
             }
         };

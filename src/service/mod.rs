@@ -2,39 +2,45 @@
 //!
 //! It owns the named maps of a data directory (one map file `<name>.bgkmap` each, see
 //! [`crate::store`]). Per map, two threads:
-//! - the **journal** thread takes validated scans from a bounded queue, writes each batch to the
-//!   map file's journal in one durable transaction (group commit: one fsync per batch) and
-//!   acknowledges them — *acknowledged means durable*. A scan whose `(source, seq)` the map
-//!   already holds is acknowledged as a duplicate and not applied again;
-//! - the **writer** thread integrates journaled scans in batches, commits their evidence and
-//!   status in one transaction, and publishes a new immutable snapshot. It also runs the exact
-//!   operations (retract, re-pose, merge) in order with the scans, and journal retention.
+//! - the **journal** thread (`ingest`) takes validated scans (`scan`) from a bounded queue,
+//!   writes each batch to the map file's journal in one durable transaction (group commit: one
+//!   fsync per batch) and acknowledges them — *acknowledged means durable*. A scan whose
+//!   `(source, seq)` the map already holds is acknowledged as a duplicate and not applied again;
+//! - the **writer** thread (`writer`) integrates journaled scans in batches, commits their
+//!   evidence and status in one transaction, and publishes a new immutable [`Snapshot`]. It also
+//!   runs the exact edits (`edits`: retract, re-pose, merge) in order with
+//!   the scans, and journal retention.
 //!
 //! A caller may ask to be answered only once its scan is integrated (read-your-writes). Readers
 //! take the current snapshot (an `Arc`): they never wait for a writer nor see a half-applied
-//! scan. A full queue (or too many journaled scans waiting for integration) is an answer
-//! ([`ServiceError::Busy`]), not a wait. A failed write makes the map read-only until writing
-//! works again (see the `health` module). Every new snapshot also goes to the map's change feed
-//! (which blocks changed, see the `feed` module). On open, journaled scans not yet integrated are replayed before the
-//! map serves, so the first snapshot holds every acknowledged scan.
+//! scan. Every read goes through one front door, [`query`]: validation, limits and whether a
+//! query may run on the caller's thread, the same for every transport. A full queue (or too many
+//! journaled scans waiting for integration) is an answer ([`ServiceError::Busy`]), not a wait. A
+//! failed write makes the map read-only until writing works again (`health`). Every new
+//! snapshot also produces an update, which says which blocks changed ([`updates`]: the map's
+//! change stream). On open, journaled scans not yet integrated are replayed before the map
+//! serves, so the first snapshot holds every acknowledged scan.
 //!
-//! The service is synchronous (std threads and channels); transports adapt the completion
-//! callbacks to their own runtime. It knows nothing of any wire format.
+//! The service is synchronous (std threads and channels) and knows nothing of any runtime or
+//! wire format; transports adapt the completion callbacks and the runtime-neutral waits to
+//! their own runtime.
 
-mod feed;
+mod edits;
 mod health;
 mod info;
 mod ingest;
-mod ops;
+pub mod query;
 mod scan;
 mod snapshot;
+pub mod updates;
 mod writer;
 
-pub use feed::{BlockBox, BlockVersions, MapUpdate, Next, ScanPose, Subscription, UpdateKind};
+pub use edits::MergeSource;
 pub use info::{MapInfo, SourceStats};
-pub use ops::MergeSource;
+pub use query::{QueryError, QueryLimits};
 pub use scan::{ScanInput, ScanLimits};
 pub use snapshot::Snapshot;
+pub use updates::{BlockBox, BlockVersions, MapUpdate, Next, ScanPose, Subscription, UpdateKind, Watch};
 
 use crate::core::MapParams;
 use crate::store::journal::SourceContent;
@@ -61,13 +67,15 @@ pub struct ServiceConfig {
     pub threads_per_scan: usize,
     /// Limits on one scan.
     pub limits: ScanLimits,
+    /// Limits on the read-only queries (every transport's).
+    pub queries: QueryLimits,
     /// How long raw scans stay in the journal. Default: all of them.
     pub retention: Retention,
     /// After a failed write, how long before writing is tried again. Default 1 s.
     pub write_retry: Duration,
-    /// Updates each map's change feed keeps for live subscribers (one per published change); one
-    /// that falls further behind is resynchronised from the snapshot. Default 256.
-    pub feed_capacity: usize,
+    /// Updates each map keeps for live subscribers (one per published change); one that falls
+    /// further behind is resynchronised from the snapshot. Default 256.
+    pub updates_capacity: usize,
 }
 
 impl Default for ServiceConfig {
@@ -77,9 +85,10 @@ impl Default for ServiceConfig {
             max_unapplied_scans: 256,
             threads_per_scan: 1,
             limits: ScanLimits::default(),
+            queries: QueryLimits::default(),
             retention: Retention::All,
             write_retry: Duration::from_secs(1),
-            feed_capacity: 256,
+            updates_capacity: 256,
         }
     }
 }
@@ -164,8 +173,8 @@ pub(super) struct Shared {
     /// What the journal holds.
     pub stats: Mutex<JournalStats>,
     pub faults: Faults,
-    /// The change feed (see the `feed` module).
-    pub feed: feed::Feed,
+    /// The recent updates (see the `updates` module).
+    pub updates: updates::UpdateRing,
 }
 
 /// What a map's journal holds, kept so that a scan counts the moment it is acknowledged.
@@ -193,7 +202,8 @@ struct MapHandle {
     params: MapParams,
     path: PathBuf,
     queue: Mutex<Option<std::sync::mpsc::SyncSender<ingest::Job>>>,
-    ops: Mutex<Option<std::sync::mpsc::Sender<writer::Work>>>,
+    /// The writer's queue, for edits (the journal thread holds its own sender).
+    work: Mutex<Option<std::sync::mpsc::Sender<writer::Work>>>,
     shared: Arc<Shared>,
     threads: Mutex<Vec<std::thread::JoinHandle<()>>>,
 }
@@ -286,7 +296,7 @@ impl MapService {
             params: *shared.snapshot().map.params(),
             path: path.to_path_buf(),
             queue: Mutex::new(Some(job_tx)),
-            ops: Mutex::new(Some(work_tx)),
+            work: Mutex::new(Some(work_tx)),
             shared,
             threads: Mutex::new(threads),
         };
@@ -328,7 +338,7 @@ impl MapService {
     /// Registers `hook`, called with the name of every map created from now on (on the creating
     /// thread, once the map takes scans; it must not create maps or register hooks itself), and
     /// returns the names of the maps that exist already: together, every map exactly once. A
-    /// transport that follows every map's change feed (zenoh) registers once at start-up.
+    /// transport that follows every map's updates (zenoh) registers once at start-up.
     pub fn on_map_created(&self, hook: impl Fn(&str) + Send + Sync + 'static) -> Vec<String> {
         let mut hooks = lock(&self.created_hooks);
         hooks.push(Box::new(hook));
@@ -347,13 +357,13 @@ impl MapService {
             self.maps.read().unwrap_or_else(PoisonError::into_inner).values().cloned().collect();
         for h in &handles {
             lock(&h.queue).take();
-            lock(&h.ops).take();
+            lock(&h.work).take();
         }
         for h in &handles {
             for j in lock(&h.threads).drain(..) {
                 let _ = j.join();
             }
-            h.shared.feed.close();
+            h.shared.updates.close();
         }
     }
 }
@@ -365,6 +375,6 @@ impl Drop for MapService {
 }
 
 #[cfg(test)]
-mod feed_tests;
-#[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod updates_tests;

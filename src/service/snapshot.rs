@@ -19,12 +19,13 @@ pub struct Snapshot {
     /// Per block, the version at which it last changed (see [`super::MapService::changes_since`]).
     pub block_versions: Arc<BlockVersions>,
     /// The version the map was opened at: block history is known from there on (see the
-    /// `feed` module).
+    /// `updates` module).
     pub history_from: u64,
 }
 
 impl Snapshot {
-    fn loss(c: &CorruptBlock, what: String) -> ServiceError {
+    /// DATA_LOSS: `what` depends on the corrupt block `c`.
+    pub fn loss(c: &CorruptBlock, what: String) -> ServiceError {
         ServiceError::DataLoss(format!(
             "{what} touches block ({}, {}, {}), which is corrupt ({}); run `bgkmap check` on the map file",
             c.key.x, c.key.y, c.key.z, c.reason
@@ -80,24 +81,26 @@ impl Snapshot {
         Ok(())
     }
 
-    /// DATA_LOSS when a ray from `origin` along `direction` (world frame) passes a corrupt block
-    /// within `reach_m` metres.
-    pub fn check_ray(
+    /// The corrupt block a ray from `origin` along `direction` (world frame) passes within
+    /// `reach_m` metres, if any (the caller names the ray in its DATA_LOSS, see [`Self::loss`]).
+    pub fn corrupt_on_ray(
         &self,
         origin: [f64; 3],
         direction: [f64; 3],
         reach_m: f64,
-        what: impl std::fmt::Display,
-    ) -> Result<(), ServiceError> {
+    ) -> Option<&CorruptBlock> {
         if self.corrupt.is_empty() {
-            return Ok(());
+            return None;
         }
         let norm = direction.iter().map(|v| v * v).sum::<f64>().sqrt();
         if !(norm.is_finite() && norm > 0.0 && reach_m.is_finite()) {
-            return Ok(());
+            return None;
         }
         let to = [0, 1, 2].map(|i| origin[i] + direction[i] / norm * reach_m);
-        self.check_segment(origin, to, &what.to_string())
+        self.corrupt.iter().find(|c| {
+            let (lo, hi) = self.block_bounds(c.key);
+            segment_hits_box(origin, to, lo, hi)
+        })
     }
 
     /// DATA_LOSS when a corrupt block holds any cell with key in `[lo, hi]`.

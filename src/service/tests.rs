@@ -3,7 +3,7 @@ use crate::core::EvidenceMap;
 use crate::core::{Integrator, PointFrame, Pose};
 use crate::sim::{Lidar, simulate};
 
-/// `n` simulated room scans as source `robot1`, seq 1..=n (also used by the feed tests).
+/// `n` simulated room scans as source `robot1`, seq 1..=n (also used by the updates tests).
 pub(super) fn sim_scans(n: usize) -> Vec<ScanInput> {
     let (_, scans) = simulate(0, n, &Lidar::default());
     scans
@@ -297,7 +297,7 @@ fn publishes_that_do_not_move_the_version_keep_snapshots_exact() {
             held.push(snap);
         }
     }
-    // The feed names each scan's blocks once, under the scan's version.
+    // The updates name each scan's blocks once, under the scan's version.
     let update = svc.changes_since("m", 0, None).unwrap();
     assert_eq!(update.version, scans.len() as u64);
     assert_eq!(update.blocks, offline(&scans).block_keys_sorted());
@@ -338,7 +338,7 @@ fn recycled_snapshots_are_the_maps_they_name() {
     let snap = svc.snapshot("m").unwrap();
     assert!(EvidenceMap::same_blocks_as(&snap.map, &offline(&rest)), "the retraction's snapshot");
     assert!(snap.map.block_count() > 0);
-    // What the change feed says changed is what did: the blocks of the retracted scan.
+    // What the updates say changed is what did: the blocks of the retracted scan.
     let before = offline(&scans);
     let update = svc.changes_since("m", 7, None).unwrap();
     let mut differ: Vec<_> = before

@@ -1,14 +1,18 @@
-//! The writer thread of one map: integrate journaled scans in batches, run the exact
-//! operations in order with them, apply retention, publish snapshots and their change-feed
-//! updates.
+//! The writer thread of one map: integrate journaled scans in batches, run the exact edits in
+//! order with them, apply retention, publish snapshots and the updates that say what changed.
+//!
+//! It owns its work queue's vocabulary ([`Work`], [`Edit`]); the modules that fill the queue
+//! (`ingest`, `edits`) depend on it, never the other way round.
 
-use super::feed::{BlockVersions, Feed, MapUpdate, ScanPose, UpdateKind};
 use super::health::Faults;
-use super::ops::Op;
+use super::updates::{BlockVersions, MapUpdate, ScanPose, UpdateKind, UpdateRing};
 use super::{Ack, Done, JournalStats, ServiceConfig, ServiceError, Shared, Snapshot};
-use crate::core::{BlockKey, EvidenceMap};
-use crate::store::{Change, DurableMap, Pending, Recovered, Retention, now_nanos};
+use crate::core::{BlockKey, EvidenceMap, Pose};
+use crate::store::{
+    Change, DurableMap, OpError, Pending, Recovered, Retention, ScanId, ScanSelector, now_nanos,
+};
 use std::collections::{BTreeMap, VecDeque};
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, TryRecvError};
 use std::sync::{Arc, Mutex, PoisonError, RwLock};
@@ -26,15 +30,23 @@ pub(super) struct Waiting {
     pub dropped_points: usize,
 }
 
+/// An exact edit for a map's writer (validated by the `edits` module).
+#[derive(Debug)]
+pub(super) enum Edit {
+    Retract(ScanSelector),
+    Repose(Vec<(ScanId, Pose)>),
+    Merge(PathBuf),
+}
+
 /// What the writer is asked to do, in order.
 pub(super) enum Work {
     Scans(Vec<Waiting>),
-    Op(Op, Box<dyn FnOnce(Result<Change, ServiceError>) + Send>),
+    Edit(Edit, Box<dyn FnOnce(Result<Change, ServiceError>) + Send>),
 }
 
 pub(super) struct Writer {
-    pub(super) map: DurableMap,
-    pub(super) shared: Arc<Shared>,
+    map: DurableMap,
+    shared: Arc<Shared>,
     /// Journaled scans not yet integrated, and (in step) who waits for each.
     pending: Vec<Pending>,
     /// Who waits, dropped points, and whether the scan is counted in flight (it came from the
@@ -90,7 +102,7 @@ impl Writer {
             faults.set_damaged(format!("{} acknowledged scans cannot be replayed: {e}", lost.len()));
         }
         // The per-block history is not stored: every block counts as changed at the version the
-        // map opens at (see the `feed` module).
+        // map opens at (see the `updates` module).
         let version = map.version();
         let block_versions: BlockVersions = map.map().blocks_unsorted().map(|(k, _)| (*k, version)).collect();
         // The first snapshot is the map as it is: changes count from here.
@@ -114,7 +126,7 @@ impl Writer {
                 in_flight: BTreeMap::new(),
             }),
             faults,
-            feed: Feed::new(config.feed_capacity),
+            updates: UpdateRing::new(config.updates_capacity),
         });
         let waiters = left.iter().map(|_| (None, 0, false)).collect();
         let last_prune = Instant::now().checked_sub(PRUNE_EVERY).unwrap_or_else(Instant::now);
@@ -161,11 +173,11 @@ impl Writer {
                     self.waiters.push((w.done, w.dropped_points, true));
                 }
             }
-            Work::Op(op, done) => {
-                // Operations see every scan journaled before them.
+            Work::Edit(edit, done) => {
+                // Edits see every scan journaled before them.
                 self.flush();
                 if self.pending.is_empty() {
-                    done(self.run_op(op));
+                    done(self.run_edit(edit));
                 } else {
                     let reason = self.shared.faults.read_only().unwrap_or_default();
                     done(Err(ServiceError::ReadOnly { map: self.name(), reason }));
@@ -174,7 +186,36 @@ impl Writer {
         }
     }
 
-    pub(super) fn name(&self) -> String {
+    /// Runs one edit on the writer's map and publishes the result.
+    fn run_edit(&mut self, edit: Edit) -> Result<Change, ServiceError> {
+        if let Some(reason) = self.shared.faults.read_only() {
+            return Err(ServiceError::ReadOnly { map: self.name(), reason });
+        }
+        let result = match edit {
+            Edit::Retract(sel) => self.map.retract(&sel),
+            Edit::Repose(poses) => self.map.repose(&poses),
+            Edit::Merge(path) => self.map.merge_from(&path),
+        };
+        match result {
+            Ok(change) => {
+                if change.scans > 0 || change.blocks_changed > 0 {
+                    self.publish();
+                }
+                Ok(change)
+            }
+            Err(OpError::Refused(m)) => Err(ServiceError::Precondition(m)),
+            Err(OpError::NotFound(m)) => Err(ServiceError::ScansNotFound(m)),
+            Err(OpError::Invalid(m)) => Err(ServiceError::invalid("request", m)),
+            Err(OpError::Store(e)) if e.is_corruption() => Err(e.into()),
+            Err(OpError::Store(e)) => {
+                let reason = e.to_string();
+                self.shared.faults.apply_failed(reason.clone());
+                Err(ServiceError::ReadOnly { map: self.name(), reason })
+            }
+        }
+    }
+
+    fn name(&self) -> String {
         self.map.path().file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default()
     }
 
@@ -270,13 +311,13 @@ impl Writer {
     }
 
     /// Publishes the map as it is now: the journal's content and, when the version moved, a new
-    /// snapshot and a change-feed update.
-    pub(super) fn publish(&mut self) {
+    /// snapshot and an update for the map's subscribers.
+    fn publish(&mut self) {
         self.publish_applied(std::iter::empty(), Vec::new());
     }
 
     /// Replaces the snapshot `old` by one of the map's new version, retires `old` and tells the
-    /// change feed which blocks changed and where the scans `poses` were taken.
+    /// subscribers which blocks changed and where the scans `poses` were taken.
     fn publish_snapshot(&mut self, old: Arc<Snapshot>, poses: Vec<ScanPose>) {
         let version = self.map.version();
         let noted = self.map.take_changes();
@@ -321,7 +362,7 @@ impl Writer {
         // After the snapshot: a subscriber never hears of a version it cannot read.
         let kind = UpdateKind::Live;
         let update = MapUpdate { kind, from_version, version, blocks, poses, reset: false };
-        self.shared.feed.publish(update);
+        self.shared.updates.publish(update);
     }
 
     /// As [`Self::publish`], with the scans of `applied` sources (just integrated) no longer in

@@ -1,6 +1,6 @@
 //! [`DurableMap`]: a map file opened for writing together with its evidence in memory and its
 //! journal index — the one implementation of integrating journaled scans, retention, and the
-//! exact operations of [`super::ops`] (retract, re-pose, merge), used by the server's writer and
+//! exact operations of [`super::edits`] (retract, re-pose, merge), used by the server's writer and
 //! by the offline commands alike.
 //!
 //! Every change is computed aside ([`MapEdit`](crate::core::MapEdit)), committed to the file in

@@ -113,19 +113,19 @@ use std::path::{Path, PathBuf};
 pub mod check;
 mod codec;
 mod durable;
+pub mod edits;
 mod file;
 pub mod journal;
 pub mod lock;
-pub mod ops;
 mod reader;
 pub mod record;
 mod schema;
 
 pub use codec::{decode_block, encode_block};
 pub use durable::{Change, DurableMap, Pending, Recovered, Retention};
+pub use edits::{OpError, ScanSelector};
 pub use file::{Commit, ImportedScan, MapFile, NewScan, OpenedMap};
 pub use journal::{JournalEntry, JournalIndex, ScanId, ScanStatus};
-pub use ops::{OpError, ScanSelector};
 pub use reader::{CorruptBlock, MapReader};
 pub use schema::SCHEMA;
 

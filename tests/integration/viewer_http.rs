@@ -26,7 +26,7 @@ fn get(addr: std::net::SocketAddr, path: &str) -> (u16, String, Vec<u8>) {
     (code, head, raw[split + 4..].to_vec())
 }
 
-/// The binary cells answer, decoded as the module docs of `src/api/viewer.rs` lay it out.
+/// The binary cells answer, decoded as the module docs of `src/api/http/viewer.rs` lay it out.
 #[derive(Debug)]
 struct Cells {
     version: u64,

@@ -531,7 +531,7 @@ async fn the_change_stream_seam_publishes_the_version_with_the_payload() {
         data_dir: dir.path().join("data"),
         grpc_listen: "127.0.0.1:0".parse().unwrap(),
         http_listen: "127.0.0.1:0".parse().unwrap(),
-        zenoh: bgkmap::api::zenoh_transport::ZenohConfig {
+        zenoh: bgkmap::api::zenoh::ZenohConfig {
             enabled: true,
             listen: vec!["tcp/127.0.0.1:0".into()],
             ..Default::default()

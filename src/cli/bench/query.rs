@@ -7,7 +7,7 @@
 use super::common::{MIN_BUSY, MIN_CALLS, TempDir, percentile};
 use super::query_net::{Grpc, Http, InProcess, MAP, QueryTransport, Zenoh, latencies_under_ingest};
 use super::world::{Workload, build_map, outdoor_params, outdoor_scans};
-use crate::api::zenoh_transport::ZenohConfig;
+use crate::api::zenoh::ZenohConfig;
 use crate::cli::serve::{ServerConfig, runtime, start};
 use crate::sim::SimScan;
 use anyhow::{Result, ensure};

@@ -5,7 +5,7 @@
 use super::common::TempDir;
 use super::server::{MAP, Meter, connect, grpc_points, points_request, random_batches, xyz_f32};
 use crate::api::pb;
-use crate::api::zenoh_transport::ZenohConfig;
+use crate::api::zenoh::ZenohConfig;
 use crate::cli::serve::{Running, ServerConfig, runtime, start};
 use crate::sim::{Lidar, SimScan, simulate};
 use anyhow::{Context, Result, bail, ensure};

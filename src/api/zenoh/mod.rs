@@ -1,4 +1,4 @@
-//! zenoh transport: bgkmap as a zenoh citizen (feature `zenoh`; interop.md §1).
+//! zenoh transport: bgkmap as a zenoh citizen (feature `zenoh`).
 //!
 //! One session per server (peer or client, explicit TCP endpoints, multicast scouting off by
 //! default). Key space, `<map>` a map name:
@@ -14,11 +14,11 @@
 //! | `bgkmap/<map>/updates/since` | query: the blocks changed since a version | `WatchUpdatesRequest` → `MapUpdate` |
 //! | `<domain>/<topic>/sensor_msgs::msg::dds_::PointCloud2_/*` | ROS 2 clouds (rmw_zenoh) | CDR |
 //!
-//! Scans and queries go through the same [`crate::api::calls`] as gRPC, so validation,
-//! exactly-once `(source, seq)` and every answer are gRPC's. A put that cannot be used is counted
-//! as rejected for its source and logged once ([`ingest`]); queries answer errors with
-//! `reply_err` ([`queries`]). The change stream: [`updates`]. ROS 2 clouds:
-//! [`ros_bridge`].
+//! Scans and queries go through the same [`crate::api::proto::calls`] as gRPC (never through
+//! the gRPC transport itself), so validation, exactly-once `(source, seq)` and every answer are
+//! gRPC's. A put that cannot be used is counted as rejected for its source and logged once
+//! ([`ingest`]); queries answer errors with `reply_err` ([`queries`]). The updates (the change
+//! stream): [`updates`]. ROS 2 clouds: [`ros_bridge`].
 //!
 //! [`config`] builds without zenoh; everything else needs the `zenoh` feature.
 
@@ -38,7 +38,9 @@ pub mod updates;
 
 pub use config::{RosPose, RosTopicConfig, ZenohConfig, ZenohMode};
 #[cfg(feature = "zenoh")]
-pub use node::{ZenohTransport, updates_key};
+pub use node::ZenohTransport;
+#[cfg(feature = "zenoh")]
+pub use updates::updates_key;
 
 /// Errors of the zenoh transport (start-up and publishing; per-message faults are counted and
 /// logged where they happen).

@@ -1,4 +1,4 @@
-//! The change feed: catch-up from the snapshot equals following live, lag resyncs, filters.
+//! The updates of a map: catch-up from the snapshot equals following live, lag resyncs, filters.
 
 use super::tests::sim_scans;
 use super::*;
@@ -9,8 +9,8 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::task::{Context, Poll, Wake, Waker};
 use std::time::Duration;
 
-fn service(dir: &std::path::Path, feed_capacity: usize) -> MapService {
-    let svc = MapService::open(dir, ServiceConfig { feed_capacity, ..Default::default() }).unwrap();
+fn service(dir: &std::path::Path, updates_capacity: usize) -> MapService {
+    let svc = MapService::open(dir, ServiceConfig { updates_capacity, ..Default::default() }).unwrap();
     if svc.map_info("m").is_err() {
         svc.create_map("m", MapParams::default()).unwrap();
     }
@@ -136,7 +136,7 @@ fn polling_wakes_on_publish_and_ends_on_shutdown() {
     assert!(flag.0.load(Ordering::SeqCst), "publishing wakes the waiting subscriber");
     assert!(matches!(sub.poll_next(&mut cx), Poll::Ready(Next::Update(u)) if u.version == 1));
     assert!(sub.poll_next(&mut cx).is_pending());
-    svc.close_feeds();
+    svc.close_updates();
     assert!(matches!(sub.poll_next(&mut cx), Poll::Ready(Next::Closed)));
 }
 
@@ -213,7 +213,7 @@ fn batches_and_exact_operations_each_publish_the_blocks_they_changed() {
     assert_eq!(updates[updates.len() - 3].blocks, patch_blocks, "the retraction names the emptied blocks");
     let snap = svc.snapshot("m").unwrap();
     assert!(patch_blocks.iter().all(|k| snap.map.block(*k).is_none()));
-    // Following the feed gives every block the version the snapshot holds for it.
+    // Following the updates gives every block the version the snapshot holds for it.
     let mut cache = BTreeMap::new();
     updates.iter().for_each(|u| apply(&mut cache, u));
     let held: BTreeMap<BlockKey, u64> = snap.block_versions.iter().map(|(k, v)| (*k, *v)).collect();

@@ -1,5 +1,5 @@
 // Cells as the page holds them: the decoder of the server's binary answer
-// (GET /v1/maps/{map}/cells, layout documented in src/api/viewer.rs), the state rule, and a
+// (GET /v1/maps/{map}/cells, layout documented in src/api/http/viewer.rs), the state rule, and a
 // store that keeps cells per block so a "changed since version N" answer replaces exactly the
 // blocks it lists.
 

@@ -1,5 +1,7 @@
-//! The change feed of a map: which blocks changed at which version, for caches kept elsewhere
-//! (a planner's local copy of a region, the web viewer, zenoh subscribers).
+//! The updates of a map (its change stream): which blocks changed at which version, for caches
+//! kept elsewhere (a planner's local copy of a region, the web viewer, zenoh subscribers). The
+//! transports put them on the wire as gRPC `WatchUpdates`, HTTP `…/updates` (SSE) and zenoh
+//! `bgkmap/<map>/updates`.
 //!
 //! Every published change of the map — a batch of integrated scans (the version moves up by one
 //! per scan), a merge, a retraction or a re-pose (one each) — produces one [`MapUpdate`]: the
@@ -10,8 +12,8 @@
 //!   that lost all evidence), so "the blocks changed since version N" is answered for any N
 //!   from the current state alone: a late subscriber catches up without any history.
 //! - **Live** ([`MapService::watch`]): a [`Subscription`] that yields updates in version order,
-//!   starting with the catch-up since the version asked for. The feed keeps only the last
-//!   [`ServiceConfig::feed_capacity`](super::ServiceConfig) updates in one shared ring, so the
+//!   starting with the catch-up since the version asked for. The map keeps only the last
+//!   [`ServiceConfig::updates_capacity`](super::ServiceConfig) updates in one shared ring, so the
 //!   writer never waits for a reader and memory stays bounded. A subscriber that falls further
 //!   behind is resynchronised from the snapshot (an update of kind [`UpdateKind::Resync`]
 //!   carrying every block changed since its last version): it never silently misses a block.
@@ -55,7 +57,7 @@ pub enum UpdateKind {
     CatchUp,
     /// One published change (a batch of scans, a merge, a retraction, a re-pose).
     Live,
-    /// The subscriber fell behind the feed; every block changed since its last version.
+    /// The subscriber fell behind the ring; every block changed since its last version.
     Resync,
 }
 
@@ -67,7 +69,7 @@ pub struct MapUpdate {
     pub version: u64,
     /// Sorted block keys (inside the subscription's box, if it has one).
     pub blocks: Vec<BlockKey>,
-    /// Sensor poses of the scans in `(from_version, version]` that the feed still holds (all of
+    /// Sensor poses of the scans in `(from_version, version]` that the ring still holds (all of
     /// them for live updates; the most recent ones for catch-ups), in version order.
     pub poses: Vec<ScanPose>,
     /// `from_version` predates the server's knowledge of the map's history (it was opened at a
@@ -107,14 +109,14 @@ impl BlockBox {
 /// The ring of recent updates of one map, shared (in [`Shared`]) by its writer and its
 /// subscribers.
 #[derive(Debug)]
-pub(crate) struct Feed {
-    state: Mutex<FeedState>,
+pub(crate) struct UpdateRing {
+    state: Mutex<RingState>,
     published: Condvar,
     capacity: usize,
 }
 
 #[derive(Debug, Default)]
-struct FeedState {
+struct RingState {
     /// Consecutive updates, oldest first: each one's `from_version` is the previous one's
     /// `version`.
     ring: VecDeque<Arc<MapUpdate>>,
@@ -124,12 +126,12 @@ struct FeedState {
     wakers: BTreeMap<u64, Waker>,
 }
 
-impl Feed {
+impl UpdateRing {
     pub fn new(capacity: usize) -> Self {
         Self { state: Mutex::default(), published: Condvar::new(), capacity: capacity.max(1) }
     }
 
-    fn lock(&self) -> std::sync::MutexGuard<'_, FeedState> {
+    fn lock(&self) -> std::sync::MutexGuard<'_, RingState> {
         self.state.lock().unwrap_or_else(PoisonError::into_inner)
     }
 
@@ -173,7 +175,7 @@ impl Feed {
 
 /// Every block changed after `since` in `snap` (and inside `filter`), as one update.
 fn changes_in(
-    feed: &Feed,
+    ring: &UpdateRing,
     snap: &Snapshot,
     since: u64,
     filter: Option<&BlockBox>,
@@ -192,7 +194,7 @@ fn changes_in(
         .map(|(k, _)| *k)
         .collect();
     blocks.sort_unstable();
-    let poses = feed.poses(since, snap.version);
+    let poses = ring.poses(since, snap.version);
     let reset = since < snap.history_from;
     Ok(MapUpdate { kind, from_version: since, version: snap.version, blocks, poses, reset })
 }
@@ -230,7 +232,7 @@ impl Subscription {
 
     /// Looks at the ring once; registers `waker` when there is nothing new.
     fn step(&mut self, waker: Option<&Waker>) -> Step {
-        let mut st = self.shared.feed.lock();
+        let mut st = self.shared.updates.lock();
         if let Some(first) = st.ring.front()
             && first.from_version > self.seen
         {
@@ -259,11 +261,15 @@ impl Subscription {
             }
             Step::Lagged => {
                 let snap = self.shared.snapshot();
-                // `seen` never passes the snapshot (it is published before the feed), so this
+                // `seen` never passes the snapshot (it is published before the update), so this
                 // only fails if that invariant broke: end the subscription rather than guess.
-                let Ok(update) =
-                    changes_in(&self.shared.feed, &snap, self.seen, self.filter.as_ref(), UpdateKind::Resync)
-                else {
+                let Ok(update) = changes_in(
+                    &self.shared.updates,
+                    &snap,
+                    self.seen,
+                    self.filter.as_ref(),
+                    UpdateKind::Resync,
+                ) else {
                     return Some(Next::Closed);
                 };
                 self.seen = update.version;
@@ -303,12 +309,12 @@ impl Subscription {
                 return Some(next);
             }
             let left = deadline.checked_duration_since(Instant::now()).filter(|d| !d.is_zero())?;
-            let feed = &self.shared.feed;
-            let st = feed.lock();
+            let ring = &self.shared.updates;
+            let st = ring.lock();
             // Re-check under the lock before sleeping, so a publish in between is not missed.
             let behind = st.ring.back().is_some_and(|u| u.version > self.seen);
             if !behind && !st.closed {
-                drop(feed.published.wait_timeout(st, left).unwrap_or_else(PoisonError::into_inner));
+                drop(ring.published.wait_timeout(st, left).unwrap_or_else(PoisonError::into_inner));
             }
         }
     }
@@ -316,13 +322,49 @@ impl Subscription {
 
 impl Drop for Subscription {
     fn drop(&mut self) {
-        self.shared.feed.lock().wakers.remove(&self.id);
+        self.shared.updates.lock().wakers.remove(&self.id);
+    }
+}
+
+/// One follower of a map as every transport streams it: the catch-up first, then the live
+/// subscription, then `None` once the service closed its updates (shutdown).
+#[derive(Debug)]
+pub struct Watch {
+    first: Option<MapUpdate>,
+    sub: Subscription,
+    /// The map's resolution (m), which every wire message carries.
+    pub resolution_m: f64,
+    closed: bool,
+}
+
+impl Watch {
+    /// A watch from what [`MapService::watch`] returned, for a map of resolution `resolution_m`.
+    pub fn new((first, sub): (MapUpdate, Subscription), resolution_m: f64) -> Self {
+        Self { first: Some(first), sub, resolution_m, closed: false }
+    }
+
+    /// The next update to send; `None` once the service has closed the map's updates.
+    pub fn poll_update(&mut self, cx: &mut Context<'_>) -> Poll<Option<Arc<MapUpdate>>> {
+        if let Some(first) = self.first.take() {
+            return Poll::Ready(Some(Arc::new(first)));
+        }
+        if self.closed {
+            return Poll::Ready(None);
+        }
+        match self.sub.poll_next(cx) {
+            Poll::Ready(Next::Update(u)) => Poll::Ready(Some(u)),
+            Poll::Ready(Next::Closed) => {
+                self.closed = true;
+                Poll::Ready(None)
+            }
+            Poll::Pending => Poll::Pending,
+        }
     }
 }
 
 impl MapService {
     /// Every block of `map` changed after version `since` (inside `filter`), answered from the
-    /// current snapshot, with the poses of those scans the feed still holds.
+    /// current snapshot, with the poses of those scans the ring still holds.
     pub fn changes_since(
         &self,
         map: &str,
@@ -330,7 +372,7 @@ impl MapService {
         filter: Option<&BlockBox>,
     ) -> Result<MapUpdate, ServiceError> {
         let h = self.handle(map)?;
-        changes_in(&h.shared.feed, &h.shared.snapshot(), since, filter, UpdateKind::CatchUp)
+        changes_in(&h.shared.updates, &h.shared.snapshot(), since, filter, UpdateKind::CatchUp)
     }
 
     /// Starts following `map`: the catch-up since `since` (the current version when `None`:
@@ -344,14 +386,14 @@ impl MapService {
         let h = self.handle(map)?;
         let snap = h.shared.snapshot();
         let catch_up = changes_in(
-            &h.shared.feed,
+            &h.shared.updates,
             &snap,
             since.unwrap_or(snap.version),
             filter.as_ref(),
             UpdateKind::CatchUp,
         )?;
         let id = {
-            let mut st = h.shared.feed.lock();
+            let mut st = h.shared.updates.lock();
             st.next_id += 1;
             st.next_id
         };
@@ -359,18 +401,18 @@ impl MapService {
         Ok((catch_up, sub))
     }
 
-    /// The sensor poses of the most recent scans of `map` the feed holds, oldest first.
+    /// The sensor poses of the most recent scans of `map` the ring holds, oldest first.
     pub fn recent_poses(&self, map: &str) -> Result<Vec<ScanPose>, ServiceError> {
         let h = self.handle(map)?;
-        Ok(h.shared.feed.poses(0, u64::MAX))
+        Ok(h.shared.updates.poses(0, u64::MAX))
     }
 
     /// Ends every subscription of every map (transports close their streams), e.g. before a
     /// graceful shutdown waits for open connections.
-    pub fn close_feeds(&self) {
+    pub fn close_updates(&self) {
         let maps = self.maps.read().unwrap_or_else(PoisonError::into_inner);
         for h in maps.values() {
-            h.shared.feed.close();
+            h.shared.updates.close();
         }
     }
 }

@@ -9,20 +9,24 @@
 //! from the start. A gap in the live versions (a put lost while the subscriber was away) is
 //! mended the same way.
 //!
-//! One publishing task per map follows the map's feed ([`crate::service::MapService::watch`])
+//! One publishing task per map follows the map's updates ([`crate::service::MapService::watch`])
 //! from the moment the transport starts, or from version 0 for a map created later (so the
 //! scans it took before its task ran arrive as one catch-up message). A subscriber that falls
-//! behind the feed gets a `RESYNC` message, as on gRPC. The tasks end when the service closes
-//! its feeds (shutdown).
+//! behind gets a `RESYNC` message, as on gRPC. The tasks end when the service closes the
+//! maps' updates (shutdown).
 
 use super::ZenohError;
-use super::node::updates_key;
-use crate::api::pb;
-use crate::api::watch::update_to_pb;
+use crate::api::proto::pb;
+use crate::api::proto::updates::update_to_pb;
 use crate::service::{MapService, Next, Subscription};
 use prost::Message;
 use std::sync::{Arc, Mutex, PoisonError};
 use zenoh::bytes::Encoding;
+
+/// Key of the change stream of `map`.
+pub fn updates_key(map: &str) -> String {
+    format!("bgkmap/{map}/updates")
+}
 
 /// Puts one change of `map` (a valid map name) on its updates key.
 pub(super) async fn put(
@@ -85,7 +89,7 @@ impl Publishers {
         me
     }
 
-    /// Waits for the tasks, which end once the service has closed its feeds (at most `wait`;
+    /// Waits for the tasks, which end once the service has closed its updates (at most `wait`;
     /// the rest are stopped); maps created from now on are not followed.
     pub(super) async fn finish(&self, wait: std::time::Duration) {
         let tasks = self.tasks.lock().unwrap_or_else(PoisonError::into_inner).take().unwrap_or_default();
@@ -98,7 +102,7 @@ impl Publishers {
     }
 }
 
-/// Puts `first` (if any) and then every update of `sub` until the feed closes.
+/// Puts `first` (if any) and then every update of `sub` until the service closes them.
 async fn publish(
     session: zenoh::Session,
     map: String,
@@ -117,7 +121,7 @@ async fn publish(
     if let Some(u) = first {
         send(u).await;
     }
-    // Until the feed closes (shutdown).
+    // Until the service closes the updates (shutdown).
     while let Next::Update(u) = std::future::poll_fn(|cx| sub.poll_next(cx)).await {
         send(update_to_pb(&u, resolution)).await;
     }

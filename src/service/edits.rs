@@ -1,11 +1,15 @@
-//! The exact operations on a live map — retract, re-pose, merge — run by its writer thread in
-//! order with the scans journaled before them (see [`crate::store::ops`]).
+//! The exact edits of a live map — retract, re-pose, merge: validated here, then handed to the
+//! map's writer thread, which runs them in order with the scans journaled before them (see
+//! [`crate::store::edits`]). The caller blocks until the writer answers.
+//!
+//! Depends on the writer only for its queue ([`Work`], [`Edit`]); the writer never depends on
+//! this module.
 
 use super::scan::{validate_seq, validate_source};
-use super::writer::{Work, Writer};
+use super::writer::{Edit, Work};
 use super::{MapService, ServiceError};
 use crate::core::Pose;
-use crate::store::{Change, OpError, ScanId, ScanSelector};
+use crate::store::{Change, ScanId, ScanSelector};
 use std::path::PathBuf;
 
 /// Where a merge takes its evidence from.
@@ -16,14 +20,6 @@ pub enum MergeSource {
     /// A map file on the server's file system (relative paths are relative to the data
     /// directory). It is only read.
     File(PathBuf),
-}
-
-/// An operation for a map's writer.
-#[derive(Debug)]
-pub(super) enum Op {
-    Retract(ScanSelector),
-    Repose(Vec<(ScanId, Pose)>),
-    Merge(PathBuf),
 }
 
 impl MapService {
@@ -42,7 +38,7 @@ impl MapService {
         {
             return Err(ServiceError::invalid("to_stamp_nanos", "must be greater than from_stamp_nanos"));
         }
-        self.run_op(name, Op::Retract(selector))
+        self.run_edit(name, Edit::Retract(selector))
     }
 
     /// Re-integrates scans under corrected poses: bit-identical to having built them with those
@@ -57,7 +53,7 @@ impl MapService {
             pose.validate()
                 .map_err(|e| ServiceError::invalid("world_from_sensor", format!("scan ({s}, {q}): {e}")))?;
         }
-        self.run_op(name, Op::Repose(poses))
+        self.run_edit(name, Edit::Repose(poses))
     }
 
     /// Adds another map's evidence exactly, counting scans both hold once. Blocks until done.
@@ -74,50 +70,19 @@ impl MapService {
             }
             MergeSource::File(p) => self.data_dir.join(p),
         };
-        self.run_op(name, Op::Merge(path))
+        self.run_edit(name, Edit::Merge(path))
     }
 
-    fn run_op(&self, name: &str, op: Op) -> Result<Change, ServiceError> {
+    fn run_edit(&self, name: &str, edit: Edit) -> Result<Change, ServiceError> {
         let h = self.handle(name)?;
         let (tx, rx) = std::sync::mpsc::sync_channel(1);
         {
-            let ops = super::lock(&h.ops);
-            let sender = ops.as_ref().ok_or(ServiceError::ShuttingDown)?;
+            let work = super::lock(&h.work);
+            let sender = work.as_ref().ok_or(ServiceError::ShuttingDown)?;
             sender
-                .send(Work::Op(op, Box::new(move |r| drop(tx.send(r)))))
+                .send(Work::Edit(edit, Box::new(move |r| drop(tx.send(r)))))
                 .map_err(|_| ServiceError::ShuttingDown)?;
         }
         rx.recv().unwrap_or(Err(ServiceError::ShuttingDown))
-    }
-}
-
-impl Writer {
-    /// Runs one operation on the writer's map and publishes the result.
-    pub(super) fn run_op(&mut self, op: Op) -> Result<Change, ServiceError> {
-        if let Some(reason) = self.shared.faults.read_only() {
-            return Err(ServiceError::ReadOnly { map: self.name(), reason });
-        }
-        let result = match op {
-            Op::Retract(sel) => self.map.retract(&sel),
-            Op::Repose(poses) => self.map.repose(&poses),
-            Op::Merge(path) => self.map.merge_from(&path),
-        };
-        match result {
-            Ok(change) => {
-                if change.scans > 0 || change.blocks_changed > 0 {
-                    self.publish();
-                }
-                Ok(change)
-            }
-            Err(OpError::Refused(m)) => Err(ServiceError::Precondition(m)),
-            Err(OpError::NotFound(m)) => Err(ServiceError::ScansNotFound(m)),
-            Err(OpError::Invalid(m)) => Err(ServiceError::invalid("request", m)),
-            Err(OpError::Store(e)) if e.is_corruption() => Err(e.into()),
-            Err(OpError::Store(e)) => {
-                let reason = e.to_string();
-                self.shared.faults.apply_failed(reason.clone());
-                Err(ServiceError::ReadOnly { map: self.name(), reason })
-            }
-        }
     }
 }

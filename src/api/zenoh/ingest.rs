@@ -10,8 +10,9 @@
 //! others wait too (the acknowledged query has no such coupling).
 
 use super::ZenohError;
-use crate::api::calls::{ProtoCalls, scan_input};
-use crate::api::pb;
+use crate::api::proto::calls::ProtoCalls;
+use crate::api::proto::convert::scan_input;
+use crate::api::proto::pb;
 use crate::service::{ScanInput, ServiceError};
 use prost::Message as _;
 use std::collections::HashSet;
@@ -101,7 +102,7 @@ impl IngestContext {
         let Some((map, source)) = parse_key(key, "scans").filter(|(_, s)| !s.is_empty()) else {
             return self.log_once("?", key, "key", "not bgkmap/<map>/scans/<source>");
         };
-        let limit = self.calls.config().max_message_bytes;
+        let limit = self.calls.max_message_bytes();
         if payload.len() > limit {
             let reason = format!("payload of {} bytes exceeds max_message_bytes {limit}", payload.len());
             return self.reject(map, source, "size", &reason);

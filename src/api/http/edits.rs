@@ -1,4 +1,4 @@
-//! HTTP handlers of the exact map operations, mirroring the gRPC calls:
+//! HTTP handlers of the exact edits, mirroring the gRPC calls:
 //!
 //! - `POST /v1/maps/{map}/merge` `{"from_map": "other"}` or `{"from_file": "path.bgkmap"}`
 //! - `POST /v1/maps/{map}/retract` `{"scans": [{"source": "r1", "seq": 3}]}` or
@@ -8,7 +8,9 @@
 //!
 //! Each answers `{"scans", "shared_scans", "blocks_changed", "version"}`.
 
-use super::http::{ApiError, ApiResult, AppState, PoseJson, parse};
+use super::scans::PoseJson;
+use super::{ApiError, ApiResult, AppState, parse};
+use crate::api::offload;
 use crate::core::Pose;
 use crate::service::{Change, MergeSource, ServiceError};
 use crate::store::ScanSelector;
@@ -18,10 +20,11 @@ use axum::response::IntoResponse;
 use serde::Deserialize;
 use serde_json::json;
 
+/// Runs a service edit off the async workers (it waits for the map's writer).
 async fn blocking(f: impl FnOnce() -> Result<Change, ServiceError> + Send + 'static) -> ApiResult {
-    let c = tokio::task::spawn_blocking(f)
+    let c = offload::blocking(f)
         .await
-        .map_err(|e| ApiError::internal(format!("operation task failed: {e}")))??;
+        .map_err(|e| ApiError::internal(format!("operation task failed: {}", e.0)))??;
     Ok(axum::Json(json!({"scans": c.scans, "shared_scans": c.shared, "blocks_changed": c.blocks_changed,
                          "version": c.version}))
     .into_response())

@@ -5,7 +5,7 @@
 //!   gRPC specifies (tonic's own check, which says `OUT_OF_RANGE`, is set 4× higher as a backstop
 //!   against unbounded buffering);
 //! - the point-query answer, the one bulk message, is encoded and decoded by the private
-//!   `api::wire` module (prost's bytes, written in blocks); [`encoded_len`], [`encode_to_vec`]
+//!   `proto::wire` module (prost's bytes, written in blocks); [`encoded_len`], [`encode_to_vec`]
 //!   and [`decode`] use it too, for transports other than gRPC.
 
 use super::{pb, wire};
@@ -73,7 +73,7 @@ impl<T: prost::Message + 'static> Encoder for StrictEncoder<T> {
     }
 }
 
-/// `msg` if it is the point-query answer, the one message `api::wire` handles.
+/// `msg` if it is the point-query answer, the one message `proto::wire` handles.
 fn as_points<M: 'static>(msg: &M) -> Option<&pb::QueryPointsResponse> {
     (msg as &dyn Any).downcast_ref()
 }

@@ -5,7 +5,7 @@ use super::config::{ZenohConfig, ZenohMode};
 use super::ingest::{IngestContext, spawn_scan_worker};
 use super::updates::Publishers;
 use super::{ZenohError, queries, ros, updates};
-use crate::api::calls::ProtoCalls;
+use crate::api::proto::calls::ProtoCalls;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Duration;
@@ -14,13 +14,8 @@ use zenoh::query::Queryable;
 
 /// How long shutdown waits for queries in flight (acknowledged ingest waits for its scan).
 const DRAIN_QUERIES: Duration = Duration::from_secs(30);
-/// How long shutdown waits for the change-stream publishers to put what their feeds hold.
+/// How long shutdown waits for the updates publishers to put what the maps hold for them.
 const DRAIN_PUBLISHERS: Duration = Duration::from_secs(5);
-
-/// Key of the change stream of `map`.
-pub fn updates_key(map: &str) -> String {
-    format!("bgkmap/{map}/updates")
-}
 
 /// A running zenoh transport.
 pub struct ZenohTransport {
@@ -125,7 +120,7 @@ impl ZenohTransport {
         while in_flight.load(Ordering::Acquire) > 0 && tokio::time::Instant::now() < deadline {
             tokio::time::sleep(Duration::from_millis(10)).await;
         }
-        // The publishers end once the service has closed its feeds (the server does that first).
+        // The publishers end once the service has closed its updates (the server does that first).
         publishers.finish(DRAIN_PUBLISHERS).await;
         // Closing drops every callback, so the workers' channels disconnect once drained.
         let _ = session.close().await;

@@ -12,9 +12,9 @@
 
 use super::ZenohError;
 use super::ingest::{IngestContext, parse_key};
-use crate::api::calls::ProtoCalls;
-use crate::api::codec::encode_to_vec;
-use crate::api::pb;
+use crate::api::proto::calls::ProtoCalls;
+use crate::api::proto::codec::encode_to_vec;
+use crate::api::proto::pb;
 use prost::Message;
 use std::future::Future;
 use std::sync::Arc;
@@ -153,7 +153,7 @@ async fn call(kind: Kind, ctx: &IngestContext, query: &Query) -> Result<Vec<u8>,
         return Err(Status::invalid_argument(format!("key {key:?} must name one map: bgkmap/<map>/…")));
     };
     let calls: &ProtoCalls = &ctx.calls;
-    let bytes = payload(query, calls.config().max_message_bytes)?;
+    let bytes = payload(query, calls.max_message_bytes())?;
     Ok(match kind {
         Kind::Points => encode_to_vec(&calls.query_points(request(map, &bytes)?).await?),
         Kind::Box => encode_to_vec(&calls.query_box(request(map, &bytes)?).await?),
@@ -161,7 +161,7 @@ async fn call(kind: Kind, ctx: &IngestContext, query: &Query) -> Result<Vec<u8>,
         Kind::Ingest => ctx.ingest_query(map, &bytes, wait_applied(query)).await?,
         Kind::UpdatesSince => {
             let req: pb::WatchUpdatesRequest = request(map, &bytes)?;
-            crate::api::watch::changes_since(calls.service(), &req)?.encode_to_vec()
+            crate::api::proto::updates::changes_since(calls.service(), &req)?.encode_to_vec()
         }
     })
 }

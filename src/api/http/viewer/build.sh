@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Bundles the viewer's sources (src/*.js, ours) with three.js (npm, pinned in package.json)
 # into dist/viewer.bundle.js, which is checked in so `cargo build` needs no Node. Run after
-# changing src/:  bash src/api/viewer/build.sh   (needs node and npm; installs into
+# changing src/:  bash src/api/http/viewer/build.sh   (needs node and npm; installs into
 # node_modules/, which git ignores).
 set -euo pipefail
 cd "$(dirname "$0")"
