@@ -60,18 +60,10 @@ pub struct BlockTable<V> {
 /// A key and its value, one entry to a cache line, so that the one prefetch of
 /// [`BlockTable::candidate`] brings in everything a lookup then reads.
 ///
-/// Kept (2026-12-07, sixteenth session, 2.1 GHz Xeon VM): the map's entries were 56-byte
-/// tuples, the key at bytes 0–11, the block pointer (the cell's address and the block's
-/// layout) at 16–31, the ray summary after it. An entry starts at one of eight offsets in a
-/// line, and at three of them (40, 48, 56) the block pointer reaches into the next line, which
-/// nothing prefetched: three points in eight waited on a load of it before their cell could be
-/// prefetched. Aligned (64 bytes, the same fields), against the previous binary in
-/// `bench query --in-process-only`, two sets of 20 alternated pairs: points into a vector
-/// ×1.053 and ×1.033 (medians of the pairs' ratios; better in 13 and 12 of 20), visited ×1.042
-/// and ×1.056 (13 and 15 of 20), 8 m rays ×1.015. It costs 8 bytes a block, 0.016 per cell.
-/// Measured the same day and not built: the tags, index and entries in huge pages, ×1.003–1.053
-/// points into a vector and ×1.061–1.066 visited (the README's paragraph on where the query
-/// time goes).
+/// Aligned to 64 bytes because an unaligned 56-byte entry straddles a line at three of its
+/// eight offsets, and the block pointer in the second, unprefetched line then stalls the
+/// lookup before its cell can be prefetched (aligned, point queries run ~4–5% faster). It
+/// costs 8 bytes a block, 0.016 per cell.
 #[derive(Debug, Clone)]
 #[repr(C, align(64))]
 pub struct Entry<V>(BlockKey, V);

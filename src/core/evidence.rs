@@ -120,15 +120,10 @@ impl Eq for BlockEvidence {}
 #[allow(unsafe_code)]
 impl BlockEvidence {
     /// A shared block without evidence, `wide` or narrow, allocated zeroed (`calloc`):
-    /// `Arc::new` of a zero block built it and then copied it into the heap (5% of sample-scan
-    /// ingest in `perf`), where the allocator can hand out memory it knows is zero and skip
-    /// both passes.
-    ///
-    /// Measured (2026-12-05, dense drive, four alternations): a build that left new blocks
-    /// unzeroed (wrong results, for the time alone) took the same 15.3–16.1 ms of evidence per
-    /// scan as this one, although `memset` is 4.5% of the profile: the fold loads those lines
-    /// next either way, so writing a new block's first rows instead of adding to zeros would
-    /// win nothing.
+    /// `Arc::new` of a zero block built it and then copied it into the heap, where the
+    /// allocator can hand out memory it knows is zero and skip both passes. Writing a new
+    /// block's first rows instead of adding to zeros would win nothing: the fold loads those
+    /// lines next either way.
     pub fn zeroed_arc(wide: bool) -> Arc<Self> {
         let len = if wide { WIDE } else { BLOCK_CELLS };
         // SAFETY: all-zero bytes are a valid `i64` (0).
@@ -304,8 +299,7 @@ impl BlockEvidence {
     ///
     /// One atomic read-modify-write when the block is already the caller's alone (the fold
     /// calls this once per block region of every brick): asking `Arc::get_mut` a second time
-    /// after a first test made `make_mut` 4.8% of sample-scan ingest in `perf`; asking once,
-    /// 2.7% (`Arc::make_mut` was 2.6% before blocks had two layouts).
+    /// after a first test nearly doubles its cost.
     #[allow(unsafe_code)]
     pub fn make_mut(block: &mut Arc<Self>, wide: bool) -> &mut Self {
         if wide && !block.is_wide() {
@@ -428,9 +422,9 @@ impl BlockEvidence {
 /// block region of every brick): [`BlockEvidence::make_mut`] on the first request, and on
 /// later ones only when hit mass comes to a narrow block.
 ///
-/// Kept (2026-12-05): `make_mut`'s atomic compare-exchange per request was 1.6% of the dense
-/// drive's ingest in `perf`, and on x86 a locked instruction also waits for every store before
-/// it (the previous region's fold) to drain.
+/// `make_mut`'s atomic compare-exchange per request is a visible share of dense ingest, and on
+/// x86 a locked instruction also waits for every store before it (the previous region's
+/// fold) to drain.
 #[derive(Debug)]
 pub struct TakenBlock {
     block: Arc<BlockEvidence>,

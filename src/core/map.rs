@@ -585,8 +585,7 @@ impl Integrator {
     /// into a map of its own on a thread of its own, whose blocks are then added into `sink`
     /// (new blocks are moved in; only the blocks where the windows of two slabs meet are added
     /// cell by cell). Sums are integers, so the split changes no bit.
-    /// Per-thread deltas, summed and then applied, were slower than one thread: a dense 64-beam
-    /// scan's evidence took 123–185 ms on two threads against 54–64 ms on one.
+    /// Per-thread deltas, summed and then applied, were more than twice as slow as one thread.
     pub fn add_training_into<S: BlockSink + ?Sized>(&mut self, sink: &mut S, threads: usize) {
         if threads <= 1 {
             self.scatter.add_into(&self.set, &self.geometry, &self.table, sink);

@@ -12,9 +12,7 @@ use super::params::Thresholds;
 /// `repr(C)` here and on [`CellEstimate`]: in Rust's own layout the state byte sat in the
 /// middle of the answer, and every answer pushed went through a stack copy in 16-byte pieces
 /// starting just after it, at odd offsets, whose loads waited on the narrower stores just made
-/// there (store forwarding fails across them; `perf annotate` put 16% of `query_points`'
-/// samples on one of those loads). Points in-process
-/// 15.6–16.4 → 16.9–17.6 M/s, five alternated runs (2026-12-04, Xeon VM).
+/// there (store forwarding fails across them).
 #[derive(Debug, Clone, Copy, PartialEq)]
 #[repr(C)]
 pub struct PointAnswer {
@@ -24,17 +22,6 @@ pub struct PointAnswer {
 
 /// Answers for points in the world frame (metres). Points outside the key range or not finite
 /// answer `None`.
-///
-/// Tried and not kept (2026-12-06, fourteenth session, Xeon VM): assembling each round's
-/// answers in a 64-answer array (3.5 KiB, in L1) and appending it in one copy, so the 5.6 MB
-/// of answers go out as vector stores. Alternated call by call with pushing, 200 calls each in
-/// one process (`bench query`'s map), the medians differed by −1.7 to +2.5% over six runs:
-/// no gain. Copying 2, 4 or 8 rounds at a time (7–28 KiB, sizes where glibc's `memcpy` may
-/// take `rep movsb`) was no faster than one. Nor (2026-12-07, seventeenth session) appending
-/// each round's array with non-temporal stores (`movntdq`), so that the answers' lines are
-/// neither read before they are written nor kept in the caches the map's lookups use: ×0.96
-/// points per second, the median of ten alternated pairs of `bench query --in-process-only`
-/// (slower in eight).
 pub fn query_points(
     map: &EvidenceMap,
     points_world: &[[f64; 3]],
@@ -47,10 +34,8 @@ pub fn query_points(
 
 /// Points looked up per round of [`for_each_point`]: that many independent hash lookups and
 /// loads are issued back to back, so their cache misses overlap instead of queueing one
-/// behind the other. 64 (the most [`EvidenceMap::blocks_of`] takes, checked at compile time)
-/// over 32: points in-process 11.2–18.2 → 16.7–18.9 M/s into a vector and 14.6–20.9 →
-/// 19.6–20.3 M/s visited, five alternated `bench query --in-process-only` runs (2026-12-04
-/// evening, Xeon VM); 96 and 128 were no faster than 64, 16 slower.
+/// behind the other. 64 is the most [`EvidenceMap::blocks_of`] takes (checked at compile
+/// time); 32 was slower, 96 and 128 no faster.
 const POINT_BATCH: usize = 64;
 const _: () = assert!(POINT_BATCH <= EvidenceMap::MAX_BATCH_LOOKUPS, "a round is one blocks_of call");
 
@@ -63,20 +48,9 @@ const _: () = assert!(POINT_BATCH <= EvidenceMap::MAX_BATCH_LOOKUPS, "a round is
 /// [`CellEstimate::from_evidence`] of zero evidence).
 ///
 /// Keys and estimates are computed stage by stage over the round, so their five divisions per
-/// point run as packed pairs: 18.4 → 19.1 M points/s (median of sixteen alternated runs in one
-/// process, 2026-12-04, Xeon VM). Tried and not kept: two rounds in flight (round k+1's cells
-/// prefetched before round k is answered): no faster, the misses already fill the core's
-/// miss buffers.
-///
-/// Also tried and not kept (2026-12-06, fifteenth session, Xeon VM; alternated call by call
-/// with this version in one process, answers checked equal): every point's keys and block
-/// first, then the cells read in address order (a counting sort of the cell addresses by the
-/// MiB, so a page's translation is fetched once, not once per point): 17–23% slower, eight
-/// runs. The sort and the separate pass over the answers cost 22–33 ns a point, and keys and
-/// block lookups alone, with no cell read, ran at only 25–35 M points/s (keys alone ~60 M/s)
-/// while whole points ran at 11–16: the block lookups are about half a point's time. Keys
-/// computed branch-free so the round's loop vectorises (rounding by adding 1.5·2⁵² instead of
-/// converting): −0.4 to +0.6%, four runs; the keys already hide under the misses.
+/// point run as packed pairs. The block lookups are about half a point's time; the rest is
+/// the cells' misses, which a round already keeps in flight to the limit of the core's miss
+/// buffers.
 pub fn for_each_point(
     map: &EvidenceMap,
     points_world: &[[f64; 3]],

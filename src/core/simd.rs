@@ -112,10 +112,8 @@ mod x86 {
 
         /// Table entries `j` and `j + 1` of 4 lanes as 4 × (value, next) 64-bit pairs: one
         /// 8-byte load per lane, not two 4-byte ones for value and slope. Four scalar loads
-        /// and inserts, not `vpgatherdq`: on AMD Zen 3 the gather was the stall of the whole
-        /// window (a third of its samples on the instruction after each gather), and the loads
-        /// made evidence ~10% faster on the sample scans (1.59 → 1.40 ms median, eight
-        /// interleaved runs, 2026-12-03).
+        /// and inserts, not `vpgatherdq`: the gather stalled the whole window (the instruction
+        /// after it waited), and the loads made evidence ~10% faster.
         #[target_feature(enable = "avx2")]
         fn pairs(&self, j: __m128i) -> __m256i {
             // SAFETY: every j ≤ TABLE_INTERVALS (clamped coordinates), so the 8 bytes at j —
