@@ -298,8 +298,8 @@ impl<V> BlockTable<V> {
         let h = KeyHash::of(key);
         if !self.index.is_empty() {
             let i = self.home_slot(h);
-            super::simd::prefetch(&self.tags[i]);
-            super::simd::prefetch(&self.index[i]);
+            super::integrate::simd::prefetch(&self.tags[i]);
+            super::integrate::simd::prefetch(&self.index[i]);
         }
         h
     }
@@ -309,7 +309,7 @@ impl<V> BlockTable<V> {
     #[inline(always)]
     pub fn candidate(&self, h: KeyHash) -> Option<u32> {
         let e = self.index[self.probe(h, |_| true)?];
-        super::simd::prefetch(&self.entries[e as usize]);
+        super::integrate::simd::prefetch(&self.entries[e as usize]);
         Some(e)
     }
 

@@ -2,18 +2,18 @@
 //!
 //! Every cell centre within `ell` of a training point receives that point's quantised unit
 //! kernel mass ([`KernelTable::quantized`]): hits add to `A`, free samples to `B`. Sums are
-//! `i64` fixed-point with [`FIXED_SHIFT`](super::kernel::FIXED_SHIFT) fractional bits, so they
+//! `i64` fixed-point with [`FIXED_SHIFT`](super::integrate::kernel::FIXED_SHIFT) fractional bits, so they
 //! are associative: any scan order, thread count or merge order gives identical bits.
 //!
 //! The fast path scatters: each training point visits the lattice cells of its support ball and
 //! adds into a dense per-scan block accumulator (a slot grid over the scan's block bounding box,
 //! no hashing per cell). [`brute_force_cell`] is the gather-side reference used by tests.
 
-use super::kernel::{COORD_SHIFT, KernelTable, TABLE_INTERVALS};
+use super::integrate::kernel::{COORD_SHIFT, KernelTable, TABLE_INTERVALS};
 use super::key::{BLOCK_CELLS, BLOCK_EDGE, BlockKey, CellKey};
 use super::map::probability_variance;
 use super::params::{MapParams, Thresholds};
-use super::training::TrainingSet;
+use super::integrate::training::TrainingSet;
 use std::sync::Arc;
 
 /// The raw evidence of one cell: occupied mass `a` and free mass `b` (fixed-point, unit kernel).
@@ -603,7 +603,7 @@ pub fn to_cell_units(p_m: [f64; 3], geo: &PairGeometry) -> [f64; 3] {
 /// rounded up.
 #[inline(always)]
 pub(crate) fn floor_f64(v: f64) -> f64 {
-    use super::kernel::ROUND_MAGIC;
+    use super::integrate::kernel::ROUND_MAGIC;
     debug_assert!(v.abs() < (1u64 << 51) as f64, "floor of {v} out of range");
     let r = (v + ROUND_MAGIC) - ROUND_MAGIC;
     r - if r > v { 1.0 } else { 0.0 }
@@ -611,12 +611,12 @@ pub(crate) fn floor_f64(v: f64) -> f64 {
 
 /// `floor` to i64 without a libm call (baseline x86-64 has no SSE4.1 `roundsd`) and without a
 /// saturating conversion (`as` adds two compares and two selects for NaN and overflow): round to
-/// the nearest integer by adding 1.5·2^52, as [`round_to_i64`](super::kernel::round_to_i64)
+/// the nearest integer by adding 1.5·2^52, as [`round_to_i64`](super::integrate::kernel::round_to_i64)
 /// does, then step down where that rounded up. Exact for |v| < 2^51, which every caller's values
 /// are (points inside the voxel key range; the callers range-test anything else first).
 #[inline(always)]
 pub(crate) fn floor_i64(v: f64) -> i64 {
-    use super::kernel::ROUND_MAGIC;
+    use super::integrate::kernel::ROUND_MAGIC;
     debug_assert!(v.abs() < (1u64 << 51) as f64, "floor of {v} out of range");
     // `t`'s low mantissa bits hold round(v), and `t − 1.5·2^52` is round(v) as a double, exactly
     // (no integer-to-float conversion): all of it vectorises, even on baseline x86-64.
@@ -641,7 +641,7 @@ pub type SubPoint = ([i32; 3], bool);
 /// (and `out` unusable) when some point lies 2^23 cells or more from the origin, beyond what
 /// the fixed point holds.
 pub fn labelled_sub_points(set: &TrainingSet, geo: &PairGeometry, out: &mut Vec<SubPoint>) -> bool {
-    use super::kernel::ROUND_MAGIC;
+    use super::integrate::kernel::ROUND_MAGIC;
     assert!(geo.sub_cells > 0, "sub-cell points need sub-cells");
     let shift = geo.sub_cells.trailing_zeros();
     let n = f64::from(geo.sub_cells);
@@ -777,14 +777,14 @@ pub fn brute_force_cell(
     (sum(&set.hits), sum(&set.frees))
 }
 
-pub use super::scatter::Scatter;
+pub use super::integrate::scatter::Scatter;
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::core::kernel::FIXED_ONE;
+    use crate::core::integrate::kernel::FIXED_ONE;
     use crate::core::params::MapParams;
-    use crate::core::training::TrainingBuilder;
+    use crate::core::integrate::training::TrainingBuilder;
     use proptest::prelude::*;
     use std::collections::BTreeMap;
 
@@ -1050,7 +1050,7 @@ mod tests {
     /// window width and the stencil path.
     #[test]
     fn adding_into_a_map_equals_applying_the_delta_at_the_edges() {
-        let n = 2 * super::super::window::BRICK_POINTS as usize + 3;
+        let n = 2 * crate::core::integrate::window::BRICK_POINTS as usize + 3;
         let hits: Vec<[f64; 3]> = (0..n).map(|i| [0.05 + (i % 7) as f64 * 0.1, 0.42, 0.37]).collect();
         let dense = TrainingSet { frees: hits[..n / 3].to_vec(), hits, ..Default::default() };
         let far = TrainingSet {
@@ -1074,7 +1074,7 @@ mod tests {
     fn dense_buckets_fold_in_time() {
         use rand::{Rng, SeedableRng};
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
-        let n = 3 * super::super::window::BRICK_POINTS as usize + 5;
+        let n = 3 * crate::core::integrate::window::BRICK_POINTS as usize + 5;
         let spot = |rng: &mut rand_chacha::ChaCha8Rng| std::array::from_fn(|_| rng.random_range(0.02..0.78));
         let mut hits: Vec<[f64; 3]> = (0..n).map(|_| spot(&mut rng)).collect();
         hits.extend(std::iter::repeat_n([0.45, 0.45, 0.45], n));
@@ -1099,7 +1099,7 @@ mod tests {
     fn buckets_of_one_point_per_cell_equal_the_brute_force() {
         use rand::{Rng, SeedableRng};
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(12);
-        let sb = super::super::window::SB;
+        let sb = crate::core::integrate::window::SB;
         let mut hits: Vec<[f64; 3]> = (0..sb * sb * sb)
             .map(|i| {
                 let c = [i % sb, i / sb % sb, i / (sb * sb)];
@@ -1107,7 +1107,7 @@ mod tests {
             })
             .collect();
         let frees: Vec<[f64; 3]> = hits.iter().rev().map(|h| h.map(|v| v + 0.004)).collect();
-        assert!(hits.len() > 4 * super::super::window::BRICK_POINTS as usize);
+        assert!(hits.len() > 4 * crate::core::integrate::window::BRICK_POINTS as usize);
         let table = KernelTable::new();
         for repeat in [false, true] {
             if repeat {

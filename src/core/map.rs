@@ -8,11 +8,11 @@
 
 use super::block_table::BlockTable;
 use super::evidence::{BlockEvidence, BlockSummary, PairGeometry, ScanDelta, Scatter};
-use super::kernel::{FIXED_ONE, KernelTable};
+use super::integrate::kernel::{FIXED_ONE, KernelTable};
 use super::key::{BlockKey, CellKey};
 use super::params::{MapParams, Thresholds};
-use super::scatter::CellPoint;
-use super::training::{TrainingBuilder, TrainingSet};
+use super::integrate::scatter::CellPoint;
+use super::integrate::training::{TrainingBuilder, TrainingSet};
 use std::sync::{Arc, OnceLock};
 
 /// Free / occupied / unknown under a set of thresholds (Eq. 9).
@@ -707,7 +707,7 @@ fn slabs_by_block_x(pts: &[CellPoint], n: usize, slabs: &mut Vec<Vec<CellPoint>>
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::core::kernel::unit_kernel;
+    use crate::core::integrate::kernel::unit_kernel;
 
     fn wall_scan() -> (Vec<[f32; 3]>, [f64; 3]) {
         // A 2 m × 2 m wall at x = 3, sampled every 2 cm, seen from the origin.

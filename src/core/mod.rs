@@ -6,26 +6,18 @@
 //! so every way of combining the same scans gives the same bits.
 
 pub mod block_table;
-pub mod edit;
 pub mod evidence;
-pub mod kernel;
+pub mod integrate;
 pub mod key;
 pub mod map;
 pub mod params;
-pub mod pool;
 pub mod pose;
 pub mod query;
-pub mod raw_scan;
-pub mod ray;
-pub mod scatter;
-pub mod simd;
-pub mod training;
-pub mod window;
 
-pub use edit::{EditedBlocks, MapEdit};
+pub use integrate::edit::{EditedBlocks, MapEdit};
 pub use key::{BlockKey, CellKey};
 pub use map::{BlockSink, CellEstimate, CellState, EvidenceMap, Integrator};
 pub use params::{MapParams, RangeMode, Thresholds};
-pub use pool::{Workers, integrate_parallel};
+pub use integrate::workers::{Workers, integrate_parallel};
 pub use pose::{PointFrame, Pose};
-pub use raw_scan::RawScan;
+pub use integrate::raw_scan::RawScan;

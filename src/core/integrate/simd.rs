@@ -1,7 +1,7 @@
 //! Explicit AVX2 for the one loop the compiler cannot vectorise: a W = 4 window's 64 kernel
 //! lookups (the table reads are indexed loads), added straight into the brick's rows; and a cache
 //! prefetch hint for queries. Most of the crate's `unsafe` is here (the other uses: the zeroed
-//! allocation of [`super::map`]'s blocks, the lifetime of [`super::pool`]'s jobs, and the
+//! allocation of [`crate::core::map`]'s blocks, the lifetime of [`super::workers`]'s jobs, and the
 //! allocator thresholds the command line sets): a prefetch never faults and reads nothing the
 //! program sees; the functions need AVX2, which they check at run time (once, cached by std),
 //! every table index is clamped to the table before it is read, and the brick rows are

@@ -9,7 +9,7 @@
 //! interpolation in i32 lanes, see [`KernelTable::quantized_lane`]).
 //!
 //! With `sub_cells = n` (the default, 8), training points sit at sub-cell centres
-//! ([`to_cell_units`](super::evidence::to_cell_units)), so `f` takes only `n` values per axis
+//! ([`to_cell_units`](crate::core::evidence::to_cell_units)), so `f` takes only `n` values per axis
 //! and a window is one of `n³` ([`SnappedWindows`], 128 KiB for la3dm's geometry): computed once
 //! per map geometry by the same arithmetic, then read and added (about a third less evidence
 //! time than computing each window). Placing such a point is integer arithmetic too, read from a table (`SnappedWindows::place`): the
@@ -28,11 +28,11 @@
 //! `CellMarks`); otherwise a bucket is folded every [`BRICK_POINTS`] points.
 //!
 //! Bits equal the reference: every lane computes `(o − f)²` per axis and sums z, y, then x,
-//! exactly as [`pair_coord`](super::evidence::pair_coord).
+//! exactly as [`pair_coord`](crate::core::evidence::pair_coord).
 
-use super::evidence::{PairGeometry, SUB_FRAC, SubPoint, floor_i32, split_point};
+use crate::core::evidence::{PairGeometry, SUB_FRAC, SubPoint, floor_i32, split_point};
 use super::kernel::{FIXED_SHIFT, KernelTable, round_to_i64};
-use super::key::BLOCK_EDGE;
+use crate::core::key::BLOCK_EDGE;
 use super::scatter::CellPoint;
 
 const B: usize = BLOCK_EDGE as usize;
@@ -343,7 +343,7 @@ const MAX_SNAPPED_BYTES: usize = 1 << 20;
 /// computed window, then read and added (a few vector adds per window instead of W³ table
 /// lookups).
 ///
-/// [`to_cell_units`]: super::evidence::to_cell_units
+/// [`to_cell_units`]: crate::core::evidence::to_cell_units
 #[derive(Debug, Default)]
 pub struct SnappedWindows {
     /// What `values` was built for: ell (bits), scale (bits), sub-cells, W.

@@ -11,10 +11,10 @@
 //! borrowed data can go (`Batch`'s `Drop`, which runs on unwinding as well).
 #![allow(unsafe_code)]
 
-use super::evidence::BlockEvidence;
-use super::key::BlockKey;
-use super::map::{BlockSink, EvidenceMap, Integrator, add_whole};
-use super::params::MapParams;
+use crate::core::evidence::BlockEvidence;
+use crate::core::key::BlockKey;
+use crate::core::map::{BlockSink, EvidenceMap, Integrator, add_whole};
+use crate::core::params::MapParams;
 use std::any::Any;
 use std::marker::PhantomData;
 use std::sync::Arc;

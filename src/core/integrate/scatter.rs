@@ -7,7 +7,7 @@
 //! are computed once per offset; each (y, z) row inside the ball visits only the x offsets whose
 //! pair is inside the ball (found by counting, without branches).
 //!
-//! Every pair's value comes from [`pair_coord`](super::evidence::pair_coord)'s arithmetic and
+//! Every pair's value comes from [`pair_coord`](crate::core::evidence::pair_coord)'s arithmetic and
 //! [`KernelTable::quantized_coord`], so the result equals the brute-force reference bit for bit.
 //!
 //! Kernel lengths up to 3 cells (la3dm's defaults are 2) take the lane-wise path of
@@ -37,12 +37,12 @@
 //! - Divisions stay divisions (no multiplied reciprocals): retracting a scan recomputes its
 //!   evidence, so every version must compute the same bits from the same scan.
 
-use super::evidence::{
+use crate::core::evidence::{
     BlockEvidence, DeltaBlock, PairGeometry, RowMask, SUB_FRAC, ScanDelta, SubPoint, TakenBlock, split_point,
 };
 use super::kernel::KernelTable;
-use super::key::{BLOCK_EDGE, BLOCK_SHIFT, BlockKey, CellKey};
-use super::map::BlockSink;
+use crate::core::key::{BLOCK_EDGE, BLOCK_SHIFT, BlockKey, CellKey};
+use crate::core::map::BlockSink;
 use super::window::{Brick, S, SB, SnappedWindows, window_shape};
 
 /// Above this many block slots the scan is split into tiles of points.
@@ -87,7 +87,7 @@ impl ScanPoint for CellPoint {
 
     #[inline(always)]
     fn cell(&self) -> [i32; 3] {
-        self.0.map(super::evidence::floor_i32)
+        self.0.map(crate::core::evidence::floor_i32)
     }
 
     #[inline(always)]
@@ -119,7 +119,7 @@ impl ScanPoint for CellPoint {
 impl ScanPoint for SubPoint {
     #[inline(always)]
     fn cell_units(&self) -> [f64; 3] {
-        super::evidence::sub_point_cell_units(self.0)
+        crate::core::evidence::sub_point_cell_units(self.0)
     }
 
     #[inline(always)]
@@ -247,7 +247,7 @@ impl Scatter {
             self.delta_of(&subs, geo, table)
         } else {
             let mut cells = std::mem::take(&mut self.cells);
-            super::evidence::labelled_cell_points(set, geo, &mut cells);
+            crate::core::evidence::labelled_cell_points(set, geo, &mut cells);
             let out = self.delta_of(&cells, geo, table);
             self.cells = cells;
             out
@@ -271,7 +271,7 @@ impl Scatter {
         };
         geo.sub_cells > 0
             && self.prepare_snapped(w, geo, table)
-            && super::evidence::labelled_sub_points(set, geo, out)
+            && crate::core::evidence::labelled_sub_points(set, geo, out)
     }
 
     /// Builds the snapped windows of width `w` for `geo` (see [`SnappedWindows::prepare`]).
@@ -287,7 +287,7 @@ impl Scatter {
     }
 
     /// As [`Scatter::delta`] for points already in cell units, as
-    /// [`labelled_cell_points`](super::evidence::labelled_cell_points) gives them for `geo`
+    /// [`labelled_cell_points`](crate::core::evidence::labelled_cell_points) gives them for `geo`
     /// (with `geo.sub_cells > 0`, at sub-cell centres: their windows are looked up by sub-cell).
     pub fn delta_of<P: ScanPoint>(
         &mut self,
@@ -321,7 +321,7 @@ impl Scatter {
             self.add_cells_into(&subs, geo, table, sink);
         } else {
             let mut cells = std::mem::take(&mut self.cells);
-            super::evidence::labelled_cell_points(set, geo, &mut cells);
+            crate::core::evidence::labelled_cell_points(set, geo, &mut cells);
             self.add_cells_into(&cells, geo, table, sink);
             self.cells = cells;
         }
@@ -329,7 +329,7 @@ impl Scatter {
     }
 
     /// As [`Scatter::add_into`] for points already in cell units, as
-    /// [`labelled_cell_points`](super::evidence::labelled_cell_points) gives them for `geo`
+    /// [`labelled_cell_points`](crate::core::evidence::labelled_cell_points) gives them for `geo`
     /// (with `geo.sub_cells > 0`, at sub-cell centres: their windows are looked up by sub-cell).
     pub fn add_cells_into<P: ScanPoint, S: BlockSink + ?Sized>(
         &mut self,
@@ -957,7 +957,7 @@ fn scatter_point_n<const N: usize>(
 }
 
 /// Largest stencil edge, 2R + 1 for R = ⌊MAX_ELL_IN_CELLS + ½⌋.
-const MAX_STENCIL: usize = 2 * (super::params::MAX_ELL_IN_CELLS as usize) + 3;
+const MAX_STENCIL: usize = 2 * (crate::core::params::MAX_ELL_IN_CELLS as usize) + 3;
 
 /// Block-key bounds of the points' own cells (the floor of the least and greatest coordinates:
 /// floor is monotone, so one floor per axis, not one per point).
@@ -979,7 +979,7 @@ fn block_bounds(pts: &[CellPoint]) -> ([i32; 3], [i32; 3]) {
             }
         }
     }
-    let block = |v: f64| super::evidence::floor_i32(v) >> BLOCK_SHIFT;
+    let block = |v: f64| crate::core::evidence::floor_i32(v) >> BLOCK_SHIFT;
     let lo: [f64; 3] = std::array::from_fn(|i| if lo[1][i] < lo[0][i] { lo[1][i] } else { lo[0][i] });
     let hi: [f64; 3] = std::array::from_fn(|i| if hi[1][i] > hi[0][i] { hi[1][i] } else { hi[0][i] });
     (lo.map(block), hi.map(block))

@@ -3,9 +3,9 @@
 //! with [`EvidenceMap::commit_edit`], so a caller can first make the change durable and only then
 //! publish it (and drop the edit if storing fails).
 
-use super::evidence::{BlockEvidence, ScanDelta};
-use super::key::BlockKey;
-use super::map::{BlockSink, EvidenceMap};
+use crate::core::evidence::{BlockEvidence, ScanDelta};
+use crate::core::key::BlockKey;
+use crate::core::map::{BlockSink, EvidenceMap};
 use rustc_hash::FxHashMap;
 use std::sync::Arc;
 

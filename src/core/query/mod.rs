@@ -7,6 +7,8 @@ use super::key::{BLOCK_CELLS, BlockKey, CellKey};
 use super::map::{CellEstimate, CellState, Evidence, EvidenceMap, alpha_beta, mean_variance};
 use super::params::Thresholds;
 
+pub mod ray;
+
 /// One answer of a point query.
 ///
 /// `repr(C)` here and on [`CellEstimate`]: in Rust's own layout the state byte sat in the
@@ -82,7 +84,7 @@ pub fn for_each_point(
         map.blocks_of(&block_keys[..n], &mut blocks[..n]);
         for (b, c) in blocks.iter().zip(&cells[..n]) {
             if let (Some(b), Some(c)) = (b, c) {
-                super::simd::prefetch(b.cell(c.index_in_block()));
+                crate::core::integrate::simd::prefetch(b.cell(c.index_in_block()));
             }
         }
         let (mut alpha, mut beta) = ([0.0; POINT_BATCH], [0.0; POINT_BATCH]);
@@ -233,7 +235,7 @@ pub fn count_box(cells: &[BoxCell]) -> [usize; 3] {
     n
 }
 
-pub use super::ray::{MAX_RAY_CELLS, RayError, RayHit, StopAt, cast_ray, traverse};
+pub use ray::{MAX_RAY_CELLS, RayError, RayHit, StopAt, cast_ray, traverse};
 
 const _: () = assert!(BLOCK_CELLS == 512);
 
