@@ -2,7 +2,7 @@
 //! (tiled from the blocks of real simulated scans, with a journal of raw scans), the time and
 //! memory to open them as the server does on restart, and the time of an exact offline merge.
 
-use crate::core::evidence::BlockEvidence;
+use crate::core::block::BlockEvidence;
 use crate::core::{BlockKey, EvidenceMap, Integrator, MapParams, PointFrame, Pose, RawScan};
 use crate::service::{MapService, ServiceConfig};
 use crate::sim::{Lidar, simulate};

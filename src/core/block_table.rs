@@ -20,7 +20,7 @@
 //! Removal swaps the last entry into the hole (and repoints its slot) and closes the probe
 //! run behind the removed slot (backward shift), so no tombstones accumulate. Both touch other
 //! entries, so the map's ingest does not remove a block to change it: it swaps the block out
-//! and back in place ([`super::map::BlockSink::take_block`]). Iteration order
+//! and back in place ([`crate::core::BlockSink::take_block`]). Iteration order
 //! is the entries' order, which depends on the order of inserts and removes: callers that emit
 //! anything sort first.
 
@@ -298,8 +298,8 @@ impl<V> BlockTable<V> {
         let h = KeyHash::of(key);
         if !self.index.is_empty() {
             let i = self.home_slot(h);
-            super::integrate::simd::prefetch(&self.tags[i]);
-            super::integrate::simd::prefetch(&self.index[i]);
+            crate::core::prefetch::prefetch(&self.tags[i]);
+            crate::core::prefetch::prefetch(&self.index[i]);
         }
         h
     }
@@ -309,7 +309,7 @@ impl<V> BlockTable<V> {
     #[inline(always)]
     pub fn candidate(&self, h: KeyHash) -> Option<u32> {
         let e = self.index[self.probe(h, |_| true)?];
-        super::integrate::simd::prefetch(&self.entries[e as usize]);
+        crate::core::prefetch::prefetch(&self.entries[e as usize]);
         Some(e)
     }
 

@@ -5,19 +5,24 @@
 //! [`pool`]'s, for ingest on several cores. Evidence is integer fixed-point (see [`evidence`]),
 //! so every way of combining the same scans gives the same bits.
 
+pub mod block;
 pub mod block_table;
-pub mod evidence;
 pub mod integrate;
 pub mod key;
 pub mod map;
 pub mod params;
 pub mod pose;
+pub mod posterior;
+pub mod prefetch;
 pub mod query;
 
 pub use integrate::edit::{EditedBlocks, MapEdit};
-pub use key::{BlockKey, CellKey};
-pub use map::{BlockSink, CellEstimate, CellState, EvidenceMap, Integrator};
-pub use params::{MapParams, RangeMode, Thresholds};
-pub use integrate::workers::{Workers, integrate_parallel};
-pub use pose::{PointFrame, Pose};
+pub use integrate::integrator::Integrator;
 pub use integrate::raw_scan::RawScan;
+pub use integrate::sink::BlockSink;
+pub use integrate::workers::{Workers, integrate_parallel};
+pub use key::{BlockKey, CellKey};
+pub use map::EvidenceMap;
+pub use params::{MapParams, RangeMode, Thresholds};
+pub use pose::{PointFrame, Pose};
+pub use posterior::{CellEstimate, CellState};

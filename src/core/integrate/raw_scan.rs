@@ -8,8 +8,9 @@
 //! same bits. Points keep their order: downsampling sums points voxel by voxel, so the order
 //! is part of the result.
 
-use crate::core::evidence::ScanDelta;
-use crate::core::map::{BlockSink, Integrator};
+use super::delta::ScanDelta;
+use super::integrator::Integrator;
+use super::sink::BlockSink;
 use crate::core::pose::{PointFrame, Pose, PoseError};
 use std::borrow::Cow;
 

@@ -7,7 +7,7 @@
 //! are computed once per offset; each (y, z) row inside the ball visits only the x offsets whose
 //! pair is inside the ball (found by counting, without branches).
 //!
-//! Every pair's value comes from [`pair_coord`](crate::core::evidence::pair_coord)'s arithmetic and
+//! Every pair's value comes from [`pair_coord`](super::cell_points::pair_coord)'s arithmetic and
 //! [`KernelTable::quantized_coord`], so the result equals the brute-force reference bit for bit.
 //!
 //! Kernel lengths up to 3 cells (la3dm's defaults are 2) take the lane-wise path of
@@ -37,21 +37,18 @@
 //! - Divisions stay divisions (no multiplied reciprocals): retracting a scan recomputes its
 //!   evidence, so every version must compute the same bits from the same scan.
 
-use crate::core::evidence::{
-    BlockEvidence, DeltaBlock, PairGeometry, RowMask, SUB_FRAC, ScanDelta, SubPoint, TakenBlock, split_point,
-};
+use super::cell_points::{CellPoint, PairGeometry, SUB_FRAC, SubPoint, split_point};
+use super::delta::{DeltaBlock, RowMask, ScanDelta};
 use super::kernel::KernelTable;
-use crate::core::key::{BLOCK_EDGE, BLOCK_SHIFT, BlockKey, CellKey};
-use crate::core::map::BlockSink;
+use super::sink::BlockSink;
 use super::window::{Brick, S, SB, SnappedWindows, window_shape};
+use crate::core::block::{BlockEvidence, TakenBlock};
+use crate::core::key::{BLOCK_EDGE, BLOCK_SHIFT, BlockKey, CellKey};
 
 /// Above this many block slots the scan is split into tiles of points.
 const MAX_SLOTS: i64 = 1 << 22;
 const NO_SLOT: u32 = u32::MAX;
 const B: i32 = BLOCK_EDGE;
-
-/// A labelled training point in cell units (true = hit).
-pub type CellPoint = ([f64; 3], bool);
 
 /// What the evidence path needs of a training point: [`CellPoint`]s anywhere, or the compact
 /// [`SubPoint`]s when points sit at sub-cell centres (their windows then come from
@@ -87,7 +84,7 @@ impl ScanPoint for CellPoint {
 
     #[inline(always)]
     fn cell(&self) -> [i32; 3] {
-        self.0.map(crate::core::evidence::floor_i32)
+        self.0.map(super::cell_points::floor_i32)
     }
 
     #[inline(always)]
@@ -119,7 +116,7 @@ impl ScanPoint for CellPoint {
 impl ScanPoint for SubPoint {
     #[inline(always)]
     fn cell_units(&self) -> [f64; 3] {
-        crate::core::evidence::sub_point_cell_units(self.0)
+        super::cell_points::sub_point_cell_units(self.0)
     }
 
     #[inline(always)]
@@ -247,7 +244,7 @@ impl Scatter {
             self.delta_of(&subs, geo, table)
         } else {
             let mut cells = std::mem::take(&mut self.cells);
-            crate::core::evidence::labelled_cell_points(set, geo, &mut cells);
+            super::cell_points::labelled_cell_points(set, geo, &mut cells);
             let out = self.delta_of(&cells, geo, table);
             self.cells = cells;
             out
@@ -271,7 +268,7 @@ impl Scatter {
         };
         geo.sub_cells > 0
             && self.prepare_snapped(w, geo, table)
-            && crate::core::evidence::labelled_sub_points(set, geo, out)
+            && super::cell_points::labelled_sub_points(set, geo, out)
     }
 
     /// Builds the snapped windows of width `w` for `geo` (see [`SnappedWindows::prepare`]).
@@ -287,7 +284,7 @@ impl Scatter {
     }
 
     /// As [`Scatter::delta`] for points already in cell units, as
-    /// [`labelled_cell_points`](crate::core::evidence::labelled_cell_points) gives them for `geo`
+    /// [`labelled_cell_points`](super::cell_points::labelled_cell_points) gives them for `geo`
     /// (with `geo.sub_cells > 0`, at sub-cell centres: their windows are looked up by sub-cell).
     pub fn delta_of<P: ScanPoint>(
         &mut self,
@@ -321,7 +318,7 @@ impl Scatter {
             self.add_cells_into(&subs, geo, table, sink);
         } else {
             let mut cells = std::mem::take(&mut self.cells);
-            crate::core::evidence::labelled_cell_points(set, geo, &mut cells);
+            super::cell_points::labelled_cell_points(set, geo, &mut cells);
             self.add_cells_into(&cells, geo, table, sink);
             self.cells = cells;
         }
@@ -329,7 +326,7 @@ impl Scatter {
     }
 
     /// As [`Scatter::add_into`] for points already in cell units, as
-    /// [`labelled_cell_points`](crate::core::evidence::labelled_cell_points) gives them for `geo`
+    /// [`labelled_cell_points`](super::cell_points::labelled_cell_points) gives them for `geo`
     /// (with `geo.sub_cells > 0`, at sub-cell centres: their windows are looked up by sub-cell).
     pub fn add_cells_into<P: ScanPoint, S: BlockSink + ?Sized>(
         &mut self,
@@ -979,7 +976,7 @@ fn block_bounds(pts: &[CellPoint]) -> ([i32; 3], [i32; 3]) {
             }
         }
     }
-    let block = |v: f64| crate::core::evidence::floor_i32(v) >> BLOCK_SHIFT;
+    let block = |v: f64| super::cell_points::floor_i32(v) >> BLOCK_SHIFT;
     let lo: [f64; 3] = std::array::from_fn(|i| if lo[1][i] < lo[0][i] { lo[1][i] } else { lo[0][i] });
     let hi: [f64; 3] = std::array::from_fn(|i| if hi[1][i] > hi[0][i] { hi[1][i] } else { hi[0][i] });
     (lo.map(block), hi.map(block))

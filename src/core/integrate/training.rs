@@ -194,7 +194,7 @@ impl TableSlot for CompactSlot {
         // voxels less than 2^bits apart on an axis are not congruent.
         (0..3).fold(0, |key, a| {
             (key << COMPACT_BITS[a])
-                | (crate::core::evidence::floor_i64(s[a]) as u64 & ((1 << COMPACT_BITS[a]) - 1))
+                | (super::cell_points::floor_i64(s[a]) as u64 & ((1 << COMPACT_BITS[a]) - 1))
         })
     }
 }
@@ -293,7 +293,7 @@ impl<S: TableSlot> VoxelCentroids<S> {
             // Every home slot prefetched, an outside point's too (it is a slot of the table).
             for (h, &k) in homes.iter_mut().zip(&keys[..chunk.len()]) {
                 *h = slot_of(k, mask);
-                super::simd::prefetch(&slots[*h]);
+                crate::core::prefetch::prefetch(&slots[*h]);
             }
             let (mut len, tag) = (self.len, self.tag);
             // Slices of known length: the length in a register, not reloaded past every store.
@@ -410,7 +410,7 @@ fn voxel_key_in_range<S: TableSlot>(p: [f64; 3], inv_ds: f64) -> u64 {
 #[inline(always)]
 fn pack_key(s: [f64; 3]) -> u64 {
     s.iter()
-        .fold(0, |key, &v| (key << KEY_BITS) | ((crate::core::evidence::floor_i64(v) + KEY_LIMIT as i64) as u64))
+        .fold(0, |key, &v| (key << KEY_BITS) | ((super::cell_points::floor_i64(v) + KEY_LIMIT as i64) as u64))
 }
 
 /// The tests' reference for [`voxel_key_or_outside`], written plainly: the voxel key, or `None`
@@ -423,7 +423,7 @@ fn voxel_key(p: [f64; 3], inv_ds: f64) -> Option<u64> {
         if !(-KEY_LIMIT..KEY_LIMIT).contains(&s) {
             return None;
         }
-        key = (key << KEY_BITS) | ((crate::core::evidence::floor_i64(s) + KEY_LIMIT as i64) as u64);
+        key = (key << KEY_BITS) | ((super::cell_points::floor_i64(s) + KEY_LIMIT as i64) as u64);
     }
     Some(key)
 }
@@ -779,7 +779,7 @@ fn shell_of(p: [f64; 3], o: [f64; 3], ds: f64, inv_ds: f64, fr: f64) -> u32 {
 fn centre_distance_squared(p: [f64; 3], o: [f64; 3], ds: f64, inv_ds: f64) -> f64 {
     // The voxel as the table keys it (`v · inv_ds`, floored), and its centre as
     // `CellKey::centre` gives it.
-    let c = p.map(|v| (crate::core::evidence::floor_f64(v * inv_ds) + 0.5) * ds);
+    let c = p.map(|v| (super::cell_points::floor_f64(v * inv_ds) + 0.5) * ds);
     let d = [c[0] - o[0], c[1] - o[1], c[2] - o[2]];
     d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
 }

@@ -9,7 +9,7 @@
 //! interpolation in i32 lanes, see [`KernelTable::quantized_lane`]).
 //!
 //! With `sub_cells = n` (the default, 8), training points sit at sub-cell centres
-//! ([`to_cell_units`](crate::core::evidence::to_cell_units)), so `f` takes only `n` values per axis
+//! ([`to_cell_units`](super::cell_points::to_cell_units)), so `f` takes only `n` values per axis
 //! and a window is one of `n³` ([`SnappedWindows`], 128 KiB for la3dm's geometry): computed once
 //! per map geometry by the same arithmetic, then read and added (about a third less evidence
 //! time than computing each window). Placing such a point is integer arithmetic too, read from a table (`SnappedWindows::place`): the
@@ -28,12 +28,12 @@
 //! `CellMarks`); otherwise a bucket is folded every [`BRICK_POINTS`] points.
 //!
 //! Bits equal the reference: every lane computes `(o − f)²` per axis and sums z, y, then x,
-//! exactly as [`pair_coord`](crate::core::evidence::pair_coord).
+//! exactly as [`pair_coord`](super::cell_points::pair_coord).
 
-use crate::core::evidence::{PairGeometry, SUB_FRAC, SubPoint, floor_i32, split_point};
-use super::kernel::{FIXED_SHIFT, KernelTable, round_to_i64};
+use super::cell_points::{CellPoint, PairGeometry, SUB_FRAC, SubPoint, floor_i32, split_point};
+use super::kernel::{KernelTable, round_to_i64};
 use crate::core::key::BLOCK_EDGE;
-use super::scatter::CellPoint;
+use crate::core::posterior::FIXED_SHIFT;
 
 const B: usize = BLOCK_EDGE as usize;
 
@@ -343,7 +343,7 @@ const MAX_SNAPPED_BYTES: usize = 1 << 20;
 /// computed window, then read and added (a few vector adds per window instead of W³ table
 /// lookups).
 ///
-/// [`to_cell_units`]: crate::core::evidence::to_cell_units
+/// [`to_cell_units`]: super::cell_points::to_cell_units
 #[derive(Debug, Default)]
 pub struct SnappedWindows {
     /// What `values` was built for: ell (bits), scale (bits), sub-cells, W.
@@ -566,7 +566,7 @@ pub(crate) fn window_values_portable<const W: usize, const W3: usize>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::core::evidence::to_cell_units;
+    use crate::core::integrate::cell_points::to_cell_units;
 
     /// Every sub-cell position in every cell of a bucket, in buckets of either sign: the table
     /// placement finds the brick index and regions of [`Brick::place`], and the precomputed

@@ -11,9 +11,11 @@
 //! borrowed data can go (`Batch`'s `Drop`, which runs on unwinding as well).
 #![allow(unsafe_code)]
 
-use crate::core::evidence::BlockEvidence;
+use super::integrator::Integrator;
+use super::sink::{BlockSink, add_whole};
+use crate::core::block::BlockEvidence;
 use crate::core::key::BlockKey;
-use crate::core::map::{BlockSink, EvidenceMap, Integrator, add_whole};
+use crate::core::map::EvidenceMap;
 use crate::core::params::MapParams;
 use std::any::Any;
 use std::marker::PhantomData;

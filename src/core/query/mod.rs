@@ -2,10 +2,11 @@
 //!
 //! Geometric arguments are world-frame metres. Answers name the cell they came from.
 
-use super::evidence::BlockEvidence;
+use super::block::BlockEvidence;
 use super::key::{BLOCK_CELLS, BlockKey, CellKey};
-use super::map::{CellEstimate, CellState, Evidence, EvidenceMap, alpha_beta, mean_variance};
+use super::map::EvidenceMap;
 use super::params::Thresholds;
+use super::posterior::{CellEstimate, CellState, Evidence, alpha_beta, mean_variance};
 
 pub mod ray;
 
@@ -84,7 +85,7 @@ pub fn for_each_point(
         map.blocks_of(&block_keys[..n], &mut blocks[..n]);
         for (b, c) in blocks.iter().zip(&cells[..n]) {
             if let (Some(b), Some(c)) = (b, c) {
-                crate::core::integrate::simd::prefetch(b.cell(c.index_in_block()));
+                crate::core::prefetch::prefetch(b.cell(c.index_in_block()));
             }
         }
         let (mut alpha, mut beta) = ([0.0; POINT_BATCH], [0.0; POINT_BATCH]);
