@@ -6,8 +6,9 @@
 //!
 //! Evidence must be bit-identical on every machine and in every order, so each pair's
 //! contribution is an integer `q = round(k̃ · 2^F)`
-//! ([`FIXED_SHIFT`](crate::core::posterior::FIXED_SHIFT)) computed by [`KernelTable::quantized`]: a table of the unit kernel over `t = u²` (built with the pure-Rust
-//! `libm`, not the platform's `sin`/`cos`), linearly interpolated in plain IEEE f64 arithmetic.
+//! ([`FIXED_SHIFT`](crate::core::posterior::FIXED_SHIFT)) computed by [`KernelTable::quantized`]:
+//! a table of the unit kernel over `t = u²` (built with the pure-Rust `libm`, not the
+//! platform's `sin`/`cos`), linearly interpolated in plain IEEE f64 arithmetic.
 //! Indexing by `u²` means no square root per pair. Interpolation error is below 4e-7 (largest near
 //! `u = 0.01`), far below the 1e-6 of the reference table.
 
