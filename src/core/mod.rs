@@ -1,9 +1,15 @@
-//! The pure, synchronous BGK core: keys and blocks, the sparse kernel, scan → training data →
-//! evidence, the evidence map, and point / box / ray queries.
+//! The pure, synchronous BGK core, in two layers.
+//!
+//! - **The data model** — [`key`], [`params`], [`pose`]; [`posterior`] (a cell's evidence, its
+//!   Beta posterior and the fixed-point unit); [`block`] (block storage); [`block_table`] and
+//!   [`map`] (the evidence map); [`prefetch`]; and [`query`] (point, box and ray queries, which
+//!   read the model only). Nothing in the model imports from the pipeline.
+//! - **The integration pipeline** — [`integrate`]: scan → training data → kernel sums →
+//!   evidence added to the map, on one thread or on [`integrate::workers`]' threads.
 //!
 //! Nothing here does I/O, spawns tasks or knows about a network transport; the only threads are
-//! [`pool`]'s, for ingest on several cores. Evidence is integer fixed-point (see [`evidence`]),
-//! so every way of combining the same scans gives the same bits.
+//! the workers', for ingest on several cores. Evidence is integer fixed point (see
+//! [`posterior`]), so every way of combining the same scans gives the same bits.
 
 pub mod block;
 pub mod block_table;
