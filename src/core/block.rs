@@ -207,7 +207,9 @@ impl BlockEvidence {
         std::mem::size_of_val(&self.data)
     }
 
-    /// Cell `i` (local index, [`CellKey::index_in_block`]), without a branch on the layout.
+    /// Cell `i` (local index,
+    /// [`CellKey::index_in_block`](crate::core::key::CellKey::index_in_block)), without a branch
+    /// on the layout.
     #[inline(always)]
     pub fn get(&self, i: usize) -> Evidence {
         let (at, wide) = self.word_of(i);
