@@ -2,10 +2,10 @@
 //! scatter and ray traversal (plus a point query), on the built-in simulated room.
 //! Run: `cargo bench --bench core` (CI only builds them: `cargo bench --no-run`).
 
-use bgkmap::core::evidence::{PairGeometry, Scatter};
-use bgkmap::core::kernel::{KernelTable, unit_kernel};
+use bgkmap::core::integrate::kernel::{KernelTable, unit_kernel};
+use bgkmap::core::integrate::training::TrainingBuilder;
+use bgkmap::core::integrate::{cell_points::PairGeometry, scatter::Scatter};
 use bgkmap::core::query::{StopAt, cast_ray, query_points, traverse};
-use bgkmap::core::training::TrainingBuilder;
 use bgkmap::core::{EvidenceMap, Integrator, MapParams};
 use bgkmap::sim::{Lidar, simulate};
 use criterion::{Criterion, criterion_group, criterion_main};

@@ -20,7 +20,7 @@
 //! Removal swaps the last entry into the hole (and repoints its slot) and closes the probe
 //! run behind the removed slot (backward shift), so no tombstones accumulate. Both touch other
 //! entries, so the map's ingest does not remove a block to change it: it swaps the block out
-//! and back in place ([`super::map::BlockSink::take_block`]). Iteration order
+//! and back in place ([`crate::core::BlockSink::take_block`]). Iteration order
 //! is the entries' order, which depends on the order of inserts and removes: callers that emit
 //! anything sort first.
 
@@ -60,18 +60,10 @@ pub struct BlockTable<V> {
 /// A key and its value, one entry to a cache line, so that the one prefetch of
 /// [`BlockTable::candidate`] brings in everything a lookup then reads.
 ///
-/// Kept (2026-12-07, sixteenth session, 2.1 GHz Xeon VM): the map's entries were 56-byte
-/// tuples, the key at bytes 0–11, the block pointer (the cell's address and the block's
-/// layout) at 16–31, the ray summary after it. An entry starts at one of eight offsets in a
-/// line, and at three of them (40, 48, 56) the block pointer reaches into the next line, which
-/// nothing prefetched: three points in eight waited on a load of it before their cell could be
-/// prefetched. Aligned (64 bytes, the same fields), against the previous binary in
-/// `bench query --in-process-only`, two sets of 20 alternated pairs: points into a vector
-/// ×1.053 and ×1.033 (medians of the pairs' ratios; better in 13 and 12 of 20), visited ×1.042
-/// and ×1.056 (13 and 15 of 20), 8 m rays ×1.015. It costs 8 bytes a block, 0.016 per cell.
-/// Measured the same day and not built: the tags, index and entries in huge pages, ×1.003–1.053
-/// points into a vector and ×1.061–1.066 visited (the README's paragraph on where the query
-/// time goes).
+/// Aligned to 64 bytes because an unaligned 56-byte entry straddles a line at three of its
+/// eight offsets, and the block pointer in the second, unprefetched line then stalls the
+/// lookup before its cell can be prefetched (aligned, point queries run ~4–5% faster). It
+/// costs 8 bytes a block, 0.016 per cell.
 #[derive(Debug, Clone)]
 #[repr(C, align(64))]
 pub struct Entry<V>(BlockKey, V);
@@ -306,8 +298,8 @@ impl<V> BlockTable<V> {
         let h = KeyHash::of(key);
         if !self.index.is_empty() {
             let i = self.home_slot(h);
-            super::simd::prefetch(&self.tags[i]);
-            super::simd::prefetch(&self.index[i]);
+            crate::core::prefetch::prefetch(&self.tags[i]);
+            crate::core::prefetch::prefetch(&self.index[i]);
         }
         h
     }
@@ -317,7 +309,7 @@ impl<V> BlockTable<V> {
     #[inline(always)]
     pub fn candidate(&self, h: KeyHash) -> Option<u32> {
         let e = self.index[self.probe(h, |_| true)?];
-        super::simd::prefetch(&self.entries[e as usize]);
+        crate::core::prefetch::prefetch(&self.entries[e as usize]);
         Some(e)
     }
 

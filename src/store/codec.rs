@@ -1,7 +1,7 @@
 //! Block evidence ⇄ bytes (encodings 1 and 2, documented in the parent module).
 
-use crate::core::evidence::{BlockEvidence, Evidence};
 use crate::core::key::BLOCK_CELLS;
+use crate::core::{block::BlockEvidence, posterior::Evidence};
 
 /// Both sums per present cell.
 const ENCODING_BOTH: u8 = 1;

@@ -35,7 +35,7 @@ pub struct ImportedScan {
 #[derive(Debug, Default)]
 pub struct Commit<'a> {
     /// Blocks to write (`None` deletes the row).
-    pub blocks: &'a [(crate::core::BlockKey, Option<std::sync::Arc<crate::core::evidence::BlockEvidence>>)],
+    pub blocks: &'a [(crate::core::BlockKey, Option<std::sync::Arc<crate::core::block::BlockEvidence>>)],
     /// New statuses of journal rows by id; `Pruned` and `Retracted` also drop the record.
     pub status: Vec<(i64, ScanStatus)>,
     /// Replaced records (re-posed scans): id, encoded record, fingerprint.
@@ -257,7 +257,7 @@ fn insert_row(
 fn write_blocks(
     tx: &Transaction<'_>,
     path: &Path,
-    blocks: &[(crate::core::BlockKey, Option<std::sync::Arc<crate::core::evidence::BlockEvidence>>)],
+    blocks: &[(crate::core::BlockKey, Option<std::sync::Arc<crate::core::block::BlockEvidence>>)],
 ) -> Result<(), StoreError> {
     let e = sql(path);
     let mut upsert = tx

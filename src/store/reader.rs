@@ -5,7 +5,7 @@ use super::journal::{JournalEntry, JournalIndex, ScanStatus};
 use super::record::{decode_record, fingerprint};
 use super::schema::{open_with, read_params, read_version};
 use super::{StoreError, decode_block, sql};
-use crate::core::evidence::BlockEvidence;
+use crate::core::block::BlockEvidence;
 use crate::core::{BlockKey, EvidenceMap, Integrator, MapParams, RawScan};
 use rusqlite::{Connection, OpenFlags, OptionalExtension};
 use std::path::{Path, PathBuf};

@@ -2,8 +2,8 @@
 
 use super::{APPLICATION_ID, FORMAT_VERSION, OLDEST_FORMAT_VERSION, StoreError, sql};
 use crate::core::MapParams;
-use crate::core::kernel::FIXED_SHIFT;
 use crate::core::key::BLOCK_EDGE;
+use crate::core::posterior::FIXED_SHIFT;
 use rusqlite::{Connection, OpenFlags, OptionalExtension, params};
 use std::path::Path;
 

@@ -1,6 +1,6 @@
 use super::*;
-use crate::core::evidence::{BlockEvidence, Evidence};
 use crate::core::{BlockKey, Integrator};
+use crate::core::{block::BlockEvidence, posterior::Evidence};
 use rusqlite::{Connection, params};
 
 fn small_map() -> EvidenceMap {

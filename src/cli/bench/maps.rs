@@ -3,7 +3,7 @@
 //! memory to open them as the server does on restart, and the time of an exact offline merge.
 
 use super::common::Cleanup;
-use crate::core::evidence::BlockEvidence;
+use crate::core::block::BlockEvidence;
 use crate::core::{BlockKey, EvidenceMap, Integrator, MapParams, PointFrame, Pose, RawScan};
 use crate::service::{MapService, ServiceConfig};
 use crate::sim::{Lidar, simulate};

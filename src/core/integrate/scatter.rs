@@ -7,7 +7,7 @@
 //! are computed once per offset; each (y, z) row inside the ball visits only the x offsets whose
 //! pair is inside the ball (found by counting, without branches).
 //!
-//! Every pair's value comes from [`pair_coord`](super::evidence::pair_coord)'s arithmetic and
+//! Every pair's value comes from [`pair_coord`](super::cell_points::pair_coord)'s arithmetic and
 //! [`KernelTable::quantized_coord`], so the result equals the brute-force reference bit for bit.
 //!
 //! Kernel lengths up to 3 cells (la3dm's defaults are 2) take the lane-wise path of
@@ -22,100 +22,33 @@
 //! the scan's blocks (see `Integrator::add_training_into`). Deltas ([`Scatter::delta`]) remain
 //! for removing a scan.
 //!
-//! # Where the time goes (sample data, 2-vCPU VM, release, other core idle)
+//! # Why it is shaped this way
 //!
-//! Stencil path: ~190k in-ball pairs per scan at ~13–17 ns per pair (~2.4–3.4 ms), a flat
-//! profile of per-row bookkeeping (~45 instructions per pair). Window path: ~370k lanes per scan
-//! (64 per point, ~52% inside the ball) with the AVX2 lookups of [`super::simd`] adding straight
-//! into an `i32` brick. Whole-ingest profile (perf, `bench ingest`, AMD EPYC Zen 3, straight
-//! into the map, 1.22–1.32 ms per scan): the 64 lookups + adds ~27% (then one 4-lane 64-bit
-//! gather per window row; now scalar loads, see [`super::simd`]), the training data's voxel table ~21% plus
-//! ~7% for the rest of the training data, folding bricks into the map's blocks ~15% (about as
-//! many brick cells are folded as lanes added: ~119 buckets of ~48 points per scan, each
-//! brick 12³ cells per label), window placement ~9%, bucketing ~3%, new blocks and the hash
-//! table ~3%. Measured and not kept: a voxel table with the key beside each slot (16-byte
-//! slots, 4× larger: slower; kept since 2026-12-03 together with prefetched rounds of probes,
-//! see `training.rs`, which made it faster); the same with keys and entries in two slot-parallel arrays and a
-//! branch-free insert (no change: the lookups wait on L2, not on mispredicted branches);
-//! prefetching the table slots of a ray's free samples (no change); an `Arc::make_mut` per
-//! folded row (an atomic compare-exchange each, 26% of the fold: now once per block region);
-//! a per-z mask of the brick rows windows touched, so a fold reads only those (4 interleaved
-//! runs, 3–13% slower: marking W rows per window costs more than the zero checks it saves), or
-//! only the y/z span of a bucket's windows (3 interleaved runs, no change); interleaving the two
-//! halves of each bucket, so consecutive windows (scan-order neighbours) do not overlap in the
-//! brick and no row load waits on a partly overlapping store (8 interleaved runs, 2026-12-03: no
-//! gain; the stall after each gather was the cost, not store forwarding).
-//! Next steps: smaller bricks for buckets of few points (free samples are isolated), and
-//! evaluating only the row pairs inside the ball.
-//!
-//! Since 2026-12-03 training points sit at sub-cell centres by default and their windows are
-//! read from a table ([`super::window::SnappedWindows`]); the lookups + adds and the window
-//! placement (~35% above) became ~20% of the sample ingest, and the fold (~20%) and the voxel
-//! table (~19%) are now the largest parts (perf, same drive).
-//!
-//! 2026-12-04, counted with callgrind (`bench ingest` of the 12 sample scans, `--repeat 3`: 48
-//! scans; instruction counts are stable on this noisy VM where times move ±30%): the whole run
-//! went from 433 to 288 M instructions, and a scan from 0.90–1.10 to 0.58–0.70 ms in calm
-//! spells. Of what is left per scan (~5.9 M): training ~1.9 M, folds ~1.5 M plus ~0.8 M of
-//! zeroing new blocks, window adds ~0.8 M, bucketing ~0.3 M, cell-unit conversion ~0.3 M. What
-//! did it: buckets of 2×2×2 blocks (no margins inside them), tabulated placement and a brick
-//! edge known at compile time (add_points 78 → 38 M), the fold's rows of fixed width tested a
-//! brick row at a time and bounds-checked once per region, floors without saturating casts or
-//! int-to-float conversions (and voxel keys in a loop that vectorises), points counted straight
-//! into bucket order, no emptiness test on blocks put back, and blocks aligned to 16 rather
-//! than 64 bytes (`calloc` instead of `posix_memalign` and a memset: ~10% of the time per
-//! scan, more than its instruction count says). Measured and not kept:
-//! - cutting every window into its shares per block (≤ 8; 2.32 per point here), sorting the
-//!   shares by block and folding one block-sized brick per block, so that every map row is
-//!   written once per scan and no margin is folded: the fold fell from ~113 to ~18 M, but
-//!   finding and sorting the shares (~1.8 M per scan) and adding clipped rows (251
-//!   instructions per share) cost more: 307 → 365 M for the evidence, 0.89–1.01 against
-//!   0.71–0.89 ms (alternated); the row work of the margins is cheaper than cutting windows;
-//! - a mask of the brick planes and one of its rows that windows touched (two ORs a window),
-//!   so a fold reads only rows in both: 351 → 360 M (the sample buckets are dense enough that
-//!   the masks are full, and iterating their bits costs more than counting);
-//! - a fold region's rows as `chunks_exact` of the brick edge (no bounds checks at all): 129 →
-//!   131 M, the iterator costs more than the checks;
-//! - building everything for x86-64-v3 (AVX2, BMI2): no difference the host's noise resolved
-//!   (three alternations); the hot loops are scalar or 4 lanes wide;
-//! - all folds into one scratch block (wrong results, to time the map's memory): evidence
-//!   0.48–0.54 against 0.60 ms, so misses on the map's blocks are about a sixth of it.
-//!
-//! Later on 2026-12-04 (perf, a calm spell, 0.46–0.51 ms per sample scan after the voxel
-//! table's fix in `training.rs`): folds ~22%, window adds ~18%, the voxel table ~19% and the
-//! rest of the training data ~8%, zeroing new blocks ~8%, bucketing, bounds and cell units
-//! ~11%. Timed with wrong results, to see what a change could win at most:
-//! - every point reading window 0, so the 128 KiB window table always sits in L1: evidence
-//!   0.28–0.30 against 0.30–0.32 ms (five alternations), so a table of 4³ windows mirrored per
-//!   axis (16 KiB, exact: the offsets are symmetric) would not pay for its flipped reads;
-//! - reciprocals multiplied instead of dividing (centroids, cell units): no gain the noise
-//!   resolved. The divisions stay regardless: retracting a scan recomputes its evidence, so
-//!   every version must compute the same bits from the same scan.
-//!
-//! 2026-12-05, the dense 64-beam drive (`bench ingest --lidar64 6 --repeat 2 --threads 1`,
-//! 361k training points per scan): its points did not fit the caches, and each pass over them
-//! (cell units, bounds, bucketing, placing) waited on memory. Points at sub-cell centres now
-//! go through as [`SubPoint`]s, 16 bytes of fixed point instead of 32 of `f64`, with cells and
-//! sub-cells found by shifts: evidence 16.5–17.5 → 15.6–16.1 ms per scan at the minima of
-//! alternated runs (means 17.5 → 16.1 and 18.7 → 17.3 in two sets). The sample scans'
-//! instructions stayed level (267.7 → 268.1 M over 48 scans) and their evidence still got
-//! faster: 0.284–0.290 → 0.262–0.278 ms, three alternations of `--repeat 200`.
+//! - Buckets of [`S`]³ = 2×2×2 blocks with a brick edge known at compile time: no margins
+//!   inside a bucket, and every brick row is a fixed-length vector operation.
+//! - Points at sub-cell centres travel as [`SubPoint`]s (16 bytes of fixed point, not 32 of
+//!   `f64`), with cells and sub-cells found by shifts: dense scans do not fit the caches, and
+//!   every pass over their points waits on memory.
+//! - Points are counted straight into bucket order; floors avoid saturating casts and
+//!   int-to-float conversions so that their loops vectorise.
+//! - A fold region is bounds-checked once, and a block is copied (`Arc::make_mut`) once per
+//!   region rather than once per row: the atomic compare-exchange per row was a quarter of
+//!   the fold.
+//! - Divisions stay divisions (no multiplied reciprocals): retracting a scan recomputes its
+//!   evidence, so every version must compute the same bits from the same scan.
 
-use super::evidence::{
-    BlockEvidence, DeltaBlock, PairGeometry, RowMask, SUB_FRAC, ScanDelta, SubPoint, TakenBlock, split_point,
-};
+use super::cell_points::{CellPoint, PairGeometry, SUB_FRAC, SubPoint, split_point};
+use super::delta::{DeltaBlock, RowMask, ScanDelta};
 use super::kernel::KernelTable;
-use super::key::{BLOCK_EDGE, BLOCK_SHIFT, BlockKey, CellKey};
-use super::map::BlockSink;
+use super::sink::BlockSink;
 use super::window::{Brick, S, SB, SnappedWindows, window_shape};
+use crate::core::block::{BlockEvidence, TakenBlock};
+use crate::core::key::{BLOCK_EDGE, BLOCK_SHIFT, BlockKey, CellKey};
 
 /// Above this many block slots the scan is split into tiles of points.
 const MAX_SLOTS: i64 = 1 << 22;
 const NO_SLOT: u32 = u32::MAX;
 const B: i32 = BLOCK_EDGE;
-
-/// A labelled training point in cell units (true = hit).
-pub type CellPoint = ([f64; 3], bool);
 
 /// What the evidence path needs of a training point: [`CellPoint`]s anywhere, or the compact
 /// [`SubPoint`]s when points sit at sub-cell centres (their windows then come from
@@ -151,7 +84,7 @@ impl ScanPoint for CellPoint {
 
     #[inline(always)]
     fn cell(&self) -> [i32; 3] {
-        self.0.map(super::evidence::floor_i32)
+        self.0.map(super::cell_points::floor_i32)
     }
 
     #[inline(always)]
@@ -183,7 +116,7 @@ impl ScanPoint for CellPoint {
 impl ScanPoint for SubPoint {
     #[inline(always)]
     fn cell_units(&self) -> [f64; 3] {
-        super::evidence::sub_point_cell_units(self.0)
+        super::cell_points::sub_point_cell_units(self.0)
     }
 
     #[inline(always)]
@@ -311,7 +244,7 @@ impl Scatter {
             self.delta_of(&subs, geo, table)
         } else {
             let mut cells = std::mem::take(&mut self.cells);
-            super::evidence::labelled_cell_points(set, geo, &mut cells);
+            super::cell_points::labelled_cell_points(set, geo, &mut cells);
             let out = self.delta_of(&cells, geo, table);
             self.cells = cells;
             out
@@ -335,7 +268,7 @@ impl Scatter {
         };
         geo.sub_cells > 0
             && self.prepare_snapped(w, geo, table)
-            && super::evidence::labelled_sub_points(set, geo, out)
+            && super::cell_points::labelled_sub_points(set, geo, out)
     }
 
     /// Builds the snapped windows of width `w` for `geo` (see [`SnappedWindows::prepare`]).
@@ -351,7 +284,7 @@ impl Scatter {
     }
 
     /// As [`Scatter::delta`] for points already in cell units, as
-    /// [`labelled_cell_points`](super::evidence::labelled_cell_points) gives them for `geo`
+    /// [`labelled_cell_points`](super::cell_points::labelled_cell_points) gives them for `geo`
     /// (with `geo.sub_cells > 0`, at sub-cell centres: their windows are looked up by sub-cell).
     pub fn delta_of<P: ScanPoint>(
         &mut self,
@@ -385,7 +318,7 @@ impl Scatter {
             self.add_cells_into(&subs, geo, table, sink);
         } else {
             let mut cells = std::mem::take(&mut self.cells);
-            super::evidence::labelled_cell_points(set, geo, &mut cells);
+            super::cell_points::labelled_cell_points(set, geo, &mut cells);
             self.add_cells_into(&cells, geo, table, sink);
             self.cells = cells;
         }
@@ -393,7 +326,7 @@ impl Scatter {
     }
 
     /// As [`Scatter::add_into`] for points already in cell units, as
-    /// [`labelled_cell_points`](super::evidence::labelled_cell_points) gives them for `geo`
+    /// [`labelled_cell_points`](super::cell_points::labelled_cell_points) gives them for `geo`
     /// (with `geo.sub_cells > 0`, at sub-cell centres: their windows are looked up by sub-cell).
     pub fn add_cells_into<P: ScanPoint, S: BlockSink + ?Sized>(
         &mut self,
@@ -595,9 +528,7 @@ impl Scatter {
         self.bucket_of.extend(pts.iter().map(|p| grid.index(p.cell().map(|v| v >> shift)) as u32));
         // The two halves of the points counted and placed side by side, each with counters of
         // its own: neighbouring points mostly share a bucket, and with one set of counters
-        // every count and every place waited for the previous one's store (the increment of a
-        // place was 29% of the sort in `perf`). Dense 64-beam evidence, eight alternated runs
-        // (2026-12-05, fifth session): 15.2–19.0 (median 15.5) → 14.6–15.5 (14.8) ms per scan.
+        // every count and every place waited for the previous one's store.
         let half = pts.len() / 2;
         // Every place is written below (the sort is a permutation), so what a previous call
         // left there needs no zeroing.
@@ -757,16 +688,6 @@ impl FoldBlock for &mut BlockEvidence {
 /// Adds the touched regions of the brick into the blocks around `block` (the bucket's) in
 /// `target`, zeroing them.
 ///
-/// Tried and not kept (2026-12-03): prefetching every touched destination row of a region
-/// before folding it (the first load of a map block's cells is where the fold stalls). On the
-/// sample scans' evidence it looked 6–8% faster in two short A/Bs (four and six alternated
-/// runs) and was 5% slower in the longest (twelve: 1.38 against 1.32 ms median): no gain the
-/// host's noise did not cover. Nor (later that day, points at sub-cell centres) prefetching all
-/// 128 lines of a bucket's own block from the sink when the bucket starts, a whole bucket's
-/// windows ahead of its fold: evidence 0.726 against 0.715 ms median, twelve alternated runs.
-/// Nor, on the dense drive (2026-12-05, five alternated runs each), prefetching the map's 8
-/// blocks of a bucket when it starts (evidence 15.5 against 15.5 ms mean) or those of the next
-/// bucket (16.6 against 15.8).
 fn fold_brick(brick: &mut Brick, block: [i32; 3], target: &mut impl FoldTarget) {
     // The margin is 1 to 3 cells for every width the window path compiles (`window_shape`);
     // a margin and edge known at compile time make every row a fixed-length vector operation.
@@ -783,14 +704,12 @@ fn fold_brick(brick: &mut Brick, block: [i32; 3], target: &mut impl FoldTarget) 
 /// blocks and the high margin) are tested together, one brick row of `E` cells at a time
 /// (when no margin of them was touched, just the blocks' cells), and then each x region's rows
 /// with mass are folded into its block. Testing a row's parts in one pass, not region by
-/// region, took the fold from 129 to 123 M instructions over 48 sample scans (callgrind, with
-/// one block per bucket): the margins' rows are two cells wide, and testing them on their own
-/// cost as much as testing the block's.
+/// with mass are folded into its block. Testing a row's parts in one pass, not region by
+/// region, matters because the margins' rows are two cells wide: testing them on their own
+/// costs as much as testing the block's.
 ///
 /// Rows no hit window reached (half the blocks of an outdoor drive see free mass only) are
-/// tested on their `b` cells and folded as free rows, `a` neither read, added nor zeroed
-/// (2026-12-05): 269.7 → 267.7 M instructions over 48 sample scans, fold −6% on the dense
-/// drive (callgrind); the times moved less than the host's noise.
+/// tested on their `b` cells and folded as free rows, `a` neither read, added nor zeroed.
 fn fold_brick_with<const M: usize, const E: usize>(
     brick: &mut Brick,
     block: [i32; 3],
@@ -1035,7 +954,7 @@ fn scatter_point_n<const N: usize>(
 }
 
 /// Largest stencil edge, 2R + 1 for R = ⌊MAX_ELL_IN_CELLS + ½⌋.
-const MAX_STENCIL: usize = 2 * (super::params::MAX_ELL_IN_CELLS as usize) + 3;
+const MAX_STENCIL: usize = 2 * (crate::core::params::MAX_ELL_IN_CELLS as usize) + 3;
 
 /// Block-key bounds of the points' own cells (the floor of the least and greatest coordinates:
 /// floor is monotone, so one floor per axis, not one per point).
@@ -1057,7 +976,7 @@ fn block_bounds(pts: &[CellPoint]) -> ([i32; 3], [i32; 3]) {
             }
         }
     }
-    let block = |v: f64| super::evidence::floor_i32(v) >> BLOCK_SHIFT;
+    let block = |v: f64| super::cell_points::floor_i32(v) >> BLOCK_SHIFT;
     let lo: [f64; 3] = std::array::from_fn(|i| if lo[1][i] < lo[0][i] { lo[1][i] } else { lo[0][i] });
     let hi: [f64; 3] = std::array::from_fn(|i| if hi[1][i] > hi[0][i] { hi[1][i] } else { hi[0][i] });
     (lo.map(block), hi.map(block))
@@ -1066,14 +985,11 @@ fn block_bounds(pts: &[CellPoint]) -> ([i32; 3], [i32; 3]) {
 /// The slots of a grid of `dims` (x fastest) in Morton order: the cube of side 2^k that holds
 /// the grid, visited octant by octant (x, then y, then z), slots outside the grid skipped.
 ///
-/// The window path visits its buckets in this order (2026-12-05, fifth session). A map block
-/// takes the rows of up to eight buckets' bricks (its own and, through their margins, those of
-/// its neighbours below on each axis); in slot order a neighbour along z came a whole x–y
-/// layer of buckets later (~1,400 on the dense drive), when the block's 8 KiB had long left
-/// the caches, and the fold's first loads of a block's cells were where it waited. In Morton
-/// order most neighbours come a few buckets apart. Dense 64-beam evidence (`bgkmap bench
-/// ingest --lidar64 6 --repeat 2 --threads 1`, four alternated runs): 15.4–16.0 → 14.6–14.9
-/// ms per scan. The general path (`stencils`) keeps slot order.
+/// The window path visits its buckets in this order. A map block takes the rows of up to
+/// eight buckets' bricks (its own and, through their margins, those of its neighbours below on
+/// each axis); in slot order a neighbour along z comes a whole x–y layer of buckets later, when
+/// the block's 8 KiB have left the caches. In Morton order most neighbours come a few buckets
+/// apart. The general path (`stencils`) keeps slot order.
 fn morton_order(dims: [i64; 3], out: &mut Vec<u32>) {
     fn visit(dims: [i64; 3], at: [i64; 3], side: i64, out: &mut Vec<u32>) {
         if (0..3).any(|i| at[i] >= dims[i]) {

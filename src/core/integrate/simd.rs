@@ -1,11 +1,11 @@
 //! Explicit AVX2 for the one loop the compiler cannot vectorise: a W = 4 window's 64 kernel
-//! lookups (the table reads are indexed loads), added straight into the brick's rows; and a cache
-//! prefetch hint for queries. Most of the crate's `unsafe` is here (the other uses: the zeroed
-//! allocation of [`super::map`]'s blocks, the lifetime of [`super::pool`]'s jobs, and the
-//! allocator thresholds the command line sets): a prefetch never faults and reads nothing the
-//! program sees; the functions need AVX2, which they check at run time (once, cached by std),
-//! every table index is clamped to the table before it is read, and the brick rows are
-//! bounds-checked once per window before they are written.
+//! lookups (the table reads are indexed loads), added straight into the brick's rows. Most of
+//! the crate's `unsafe` is here (the other uses: the zeroed allocation of blocks in
+//! [`crate::core::block`], the prefetch hint of [`crate::core::prefetch`], the lifetime of
+//! [`super::workers`]'s jobs, and the allocator thresholds the command line sets): the
+//! functions need AVX2, which they check at run time (once, cached by std), every table index
+//! is clamped to the table before it is read, and the brick rows are bounds-checked once per
+//! window before they are written.
 //!
 //! The lanes do exactly the scalar path's operations — IEEE f64 add, multiply and min, the
 //! `1.5·2^52` rounding, i32 interpolation — so both paths give the same bits (tested below and by
@@ -58,20 +58,6 @@ pub fn add_window_w4(
     false
 }
 
-/// Asks the CPU to start loading the cache line holding `*p` (a hint: no fault, no effect on
-/// any value). Lookups that will miss issue this for a whole batch first, so the misses overlap.
-#[inline(always)]
-pub fn prefetch<T>(p: &T) {
-    #[cfg(target_arch = "x86_64")]
-    // SAFETY: SSE is part of x86-64; a prefetch of any address is architecturally a no-op.
-    unsafe {
-        use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
-        _mm_prefetch::<_MM_HINT_T0>((p as *const T).cast::<i8>());
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = p;
-}
-
 #[cfg(target_arch = "x86_64")]
 mod x86 {
     use super::*;
@@ -112,10 +98,8 @@ mod x86 {
 
         /// Table entries `j` and `j + 1` of 4 lanes as 4 × (value, next) 64-bit pairs: one
         /// 8-byte load per lane, not two 4-byte ones for value and slope. Four scalar loads
-        /// and inserts, not `vpgatherdq`: on AMD Zen 3 the gather was the stall of the whole
-        /// window (a third of its samples on the instruction after each gather), and the loads
-        /// made evidence ~10% faster on the sample scans (1.59 → 1.40 ms median, eight
-        /// interleaved runs, 2026-12-03).
+        /// and inserts, not `vpgatherdq`: the gather stalled the whole window (the instruction
+        /// after it waited), and the loads made evidence ~10% faster.
         #[target_feature(enable = "avx2")]
         fn pairs(&self, j: __m128i) -> __m256i {
             // SAFETY: every j ≤ TABLE_INTERVALS (clamped coordinates), so the 8 bytes at j —

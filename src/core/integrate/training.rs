@@ -17,7 +17,7 @@
 //! voxels; free voxels too, except that a large scan's go shell by shell (see `FreeRay`): their
 //! order carries no meaning (evidence sums are integers, the same in any order).
 
-use super::params::{MapParams, RangeMode};
+use crate::core::params::{MapParams, RangeMode};
 
 /// Labelled training points of one scan, in world metres.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -50,47 +50,16 @@ impl TrainingSet {
 /// probing, multiplicative hash): cheaper than a general hash map for the ~30k lookups a scan
 /// makes. Voxel keys must lie within ±2^20 per axis (±100 km at 0.1 m).
 ///
-/// Tried and not kept (2026-12-02): remembering, per free-sample number, the voxel the previous
-/// ray's sample fell in, so a sample in the same voxel skips the probe. Same bits, the same
-/// instruction count (callgrind), 3–4% less training time on the sample scans and nothing
-/// measurable on the dense drive: the table already lives in L2. Also tried (2026-12-03): home
-/// slots that keep the voxels of a 4×4×4 group in one run of 64 slots, so the next ray's
-/// samples probe the same cache lines: training 0.46 → 0.71 ms per sample scan (eight
-/// interleaved runs), because the group runs overlap and linear probing then walks long chains.
-///
-/// Kept (2026-12-03): points go in by rounds of 32 whose home slots are prefetched
-/// first, and a slot holds its key, so a probe is one load where it was two. A dense 64-beam
-/// scan's table is megabytes; its training went from 70–86 to 33–35 ms per scan, the sample
-/// scans' from 0.49 to 0.40 ms (`bgkmap bench ingest`, same bits). Emptying a table at least
-/// 1/8 full in one pass instead of slot by slot: 30 → 19–20 and 0.40 → 0.35 ms. Tried after
-/// it and not kept: keys of the whole call first, then each home slot prefetched 16 points
-/// ahead of its insert (with or without the voxel's sum prefetched 8 ahead): dense training
-/// 21–23 against 19–22 ms, sample scans 0.29 against 0.27 ms, so rounds stay. Tried 2026-12-04
-/// and not kept: a round in three passes (keys and home slots; find or create each voxel in
-/// order and prefetch its sum; then add in order), so the misses on the sums overlap too:
-/// training 0.28–0.30 against 0.26–0.34 ms (five alternations), the extra pass cost what the
-/// overlap saved. On the dense drive too (2026-12-07, seventeenth session, every round of
-/// every table; the sums filled with [`EMPTY_SUM`] for a round's new voxels before its adds):
-/// training ×1.057 per scan (median of eight alternated pairs of `bench ingest --lidar64 6
-/// --repeat 3 --threads 1`, slower in six), although `perf annotate` puts ~30% of the inserts'
-/// samples on the sums' stores.
-///
-/// Kept (2026-12-04): home slots from the top bits of the hash (the bits below 42 ignored x,
-/// so a lookup probed 2.3 slots on average and its exit branch was mispredicted every fourth
-/// time), and an insert with one branch, taken on collisions only (see `insert`):
-/// simulated mispredictions over 48 sample scans 910k → 435k (callgrind `--branch-sim`),
-/// training 0.22–0.27 → 0.16–0.22 ms per sample scan (six alternated runs of `--repeat 20`);
-/// the black-boxed exit test alone 0.186 → 0.158 ms (five alternated runs). The dense drive's
-/// training stayed at 18–20 ms: its table is megabytes and waits on memory, not branches.
-/// Tried after it and not kept: emptying the table by bumping a scan number kept in each slot
-/// (in the padding after the index) instead of a pass over it: training 0.19–0.23 against
-/// 0.16–0.22 ms (five alternated runs). The pass costs ~2% of a scan, but it also brings the
-/// table into the cache just before the scan's lookups.
-///
-/// Kept (2026-12-05): range-tested keys (the hits, whose points may be anything) computed in a
-/// loop of their own without branches, as the free samples' unchecked keys were, so it
-/// vectorises: 283.4 → 279.4 M instructions over 48 sample scans (callgrind), training
-/// 0.153–0.158 → 0.150–0.153 ms per scan (four alternated runs, a calm host).
+/// Why it looks as it does:
+/// - a slot holds its key beside the voxel's index, so a probe is one load;
+/// - points go in by rounds (`ADD_BATCH`) whose home slots are computed and prefetched
+///   first, so the misses of a round overlap (a dense scan's table is megabytes);
+/// - home slots come from the top bits of the hash (see `slot_of`), and an insert has one
+///   branch, taken on collisions only (see `insert`);
+/// - range-tested keys (the hits, which may be anything) are computed in a loop of their own
+///   without branches, so it vectorises;
+/// - a table at least 1/8 full is emptied in one pass rather than slot by slot, and a tagged
+///   table ([`Slot`]) is emptied by moving its tag on.
 #[derive(Debug, Default)]
 pub(crate) struct VoxelCentroids<S: TableSlot = Slot> {
     /// The open-addressing table: the voxel key and its index into `sums` + 1 (0 = empty),
@@ -110,13 +79,8 @@ pub(crate) struct VoxelCentroids<S: TableSlot = Slot> {
 }
 
 /// A voxel's sum of points (x, y, z) and, as a fourth lane, their number (a double, exact up
-/// to 2^53): one 4-lane add per point.
-///
-/// Tried and not kept (2026-12-06, twelfth session): points kept as `[x, y, z, 1]` in the
-/// sample buffers, so that an insert adds one loaded vector instead of building it from 24
-/// bytes. The insert loop lost one instruction, but the keys of a compact table's round no
-/// longer vectorised (~32 instructions per point instead of ~9): `build_into` 704.4 → 722.6 M
-/// instructions for `bench ingest --lidar64 2 --repeat 1 --threads 1` (callgrind).
+/// to 2^53): one 4-lane add per point. The sample buffers keep `[x, y, z]`, not
+/// `[x, y, z, 1]`: the keys of a compact table's round vectorise only from the former.
 type Sum = [f64; 4];
 
 /// What a voxel's sum starts from: −0 is the identity of floating-point addition (`x + −0 = x`
@@ -147,13 +111,9 @@ pub(crate) trait TableSlot: Copy + Default + std::fmt::Debug {
 /// A slot for any voxel of the key range: its whole 63-bit key, its index, and the tag of the
 /// generation that wrote it, in the 4 bytes the other two leave of 16.
 ///
-/// Kept (2026-12-06, tenth session, 2.1 GHz Xeon VM): emptying the tables took 4.3–4.5% of
-/// the sample scans' profile (`perf record` of `bench ingest S/*.pcd --repeat 600`): the free
-/// voxels' table is sized for the largest scan so far, a few hundred KiB of slots, and every
-/// scan emptied it whole. Now a scan moves the tag on instead, and the table drops out of the
-/// profile; training 0.171–0.264 → 0.159–0.260 ms per scan (medians 0.205 → 0.173) over eight
-/// alternated runs of `--repeat 300`, same bits. [`CompactSlot`]s (a dense scan's shells) have
-/// no room for a tag and are emptied as before; the dense drive timed the same.
+/// The tag exists because the free voxels' table is sized for the largest scan so far (a few
+/// hundred KiB of slots) and emptying it whole every scan was a visible share of ingest.
+/// [`CompactSlot`]s (a dense scan's shells) have no room for a tag and are emptied as before.
 #[derive(Debug, Clone, Copy, Default)]
 pub(crate) struct Slot {
     key: u64,
@@ -177,9 +137,8 @@ impl TableSlot for Slot {
     #[inline(always)]
     fn probe(self, key: u64, tag: u32) -> u64 {
         // Through `black_box` (a store and a load): as the keys' difference masked by the
-        // tags' agreement, the compiler split the test into two branches again, and the sample
-        // scans' training took 16–81% longer in eight alternated runs (2026-12-06, eleventh
-        // session).
+        // tags' agreement, the compiler splits the test into two branches again, which costs
+        // far more than the store and load.
         u64::from(!std::hint::black_box((self.tag != tag) | (self.key == key)))
     }
 
@@ -223,10 +182,8 @@ impl TableSlot for CompactSlot {
 
     #[inline(always)]
     fn probe(self, key: u64, _tag: u32) -> u64 {
-        // The smaller of the index (0: empty) and the keys' difference (0: the same key).
-        // Against a `bool` through `black_box`, as `Slot` keeps: 722.8 → 704.4 M training
-        // instructions for `bench ingest --lidar64 2 --repeat 1` (callgrind), dense training
-        // faster in three of four alternated runs (2026-12-06).
+        // The smaller of the index (0: empty) and the keys' difference (0: the same key):
+        // fewer instructions than a `bool` through `black_box`, as `Slot` keeps.
         (self.0 & ((1 << COMPACT_INDEX_BITS) - 1))
             .min((self.0 ^ (key << COMPACT_INDEX_BITS)) >> COMPACT_INDEX_BITS)
     }
@@ -237,7 +194,7 @@ impl TableSlot for CompactSlot {
         // voxels less than 2^bits apart on an axis are not congruent.
         (0..3).fold(0, |key, a| {
             (key << COMPACT_BITS[a])
-                | (super::evidence::floor_i64(s[a]) as u64 & ((1 << COMPACT_BITS[a]) - 1))
+                | (super::cell_points::floor_i64(s[a]) as u64 & ((1 << COMPACT_BITS[a]) - 1))
         })
     }
 }
@@ -250,10 +207,8 @@ const KEY_LIMIT: f64 = (1u64 << (KEY_BITS - 1)) as f64;
 /// other (a dense scan's table is megabytes, and its next voxel is anywhere in it).
 const ADD_BATCH: usize = 32;
 /// Points per round when the slots take more than [`LARGE_TABLE_BYTES`] (a dense scan's:
-/// megabytes, past L2), where a probe misses to L3 and more of them in flight pay. Dense
-/// 64-beam training per scan, medians of 15, 15, 11 and 5 alternated runs (2026-12-04 late
-/// evening, Xeon VM): 23.6 ms with rounds of 32, 22.3 with 64, 21.4 with 128, 23.0 with 256.
-/// The sample scans' tables (a few hundred KiB) keep 32, which measured faster for them than 64.
+/// megabytes, past L2), where a probe misses to L3 and more of them in flight pay; 128 was the
+/// best of 32–256 for dense scans. Tables of a few hundred KiB keep 32, faster for them.
 const LARGE_TABLE_BATCH: usize = 4 * ADD_BATCH;
 const LARGE_TABLE_BYTES: usize = 1 << 20;
 
@@ -338,7 +293,7 @@ impl<S: TableSlot> VoxelCentroids<S> {
             // Every home slot prefetched, an outside point's too (it is a slot of the table).
             for (h, &k) in homes.iter_mut().zip(&keys[..chunk.len()]) {
                 *h = slot_of(k, mask);
-                super::simd::prefetch(&slots[*h]);
+                crate::core::prefetch::prefetch(&slots[*h]);
             }
             let (mut len, tag) = (self.len, self.tag);
             // Slices of known length: the length in a register, not reloaded past every store.
@@ -367,10 +322,6 @@ impl<S: TableSlot> VoxelCentroids<S> {
     }
 
     /// Resizes the table to hold `voxels` at most half full.
-    ///
-    /// Tried and not kept (2026-12-05, sixth session, dense drive, four alternations): tables up
-    /// to three quarters full, so a dense scan's busiest shell (~17k voxels) takes 32k compact
-    /// slots (256 KiB) instead of 64k: training 12.1–12.4 ms per scan either way.
     fn grow(&mut self, voxels: usize) {
         let cap = (2 * voxels).next_power_of_two().max(1024);
         self.slots.clear();
@@ -407,25 +358,10 @@ impl<S: TableSlot> VoxelCentroids<S> {
 /// [`EMPTY_SUM`], so both cases add the point to `sums[index]` and write the slot; the number
 /// then grows by one if the voxel was new, and the entry after the last is reset.
 ///
-/// Measured (2026-12-05, dense drive, `bench ingest --lidar64 6 --repeat 2 --threads 1`, three
-/// alternations each): taking the table, the sums and the count as arguments, not through
-/// `self`, cut training from 13.95–14.12 to 13.46–13.74 ms per scan (callgrind: 2.872 →
-/// 2.834 G instructions for `--lidar64 2 --repeat 1`). Tried and not kept: summing a run of
-/// points in one voxel (neighbouring rays in a shell) in registers and looking the voxel up
-/// once per run, +0.5 to +0.9 ms (a branch per point on whether the voxel changed, which no
-/// predictor learns; runs are short, see below); resetting a round's new entries in one fill
-/// before it instead of one entry per insert, no change. Nor (2026-12-05, fourth session)
-/// inserting a round's two halves interleaved, to see whether consecutive inserts into one
-/// voxel wait on each other's sums (a timing probe, not the same bits): training 14.3–14.9
-/// against 13.3–13.7 ms, so they do not, and the table's cost is its instructions.
 ///
-/// Runs measured (2026-12-06, thirteenth session, counting equal consecutive keys of the
-/// dense shells' rounds in `bench ingest --lidar64 2 --repeat 1`, warm-up and timed pass):
-/// 5.49 M samples in 3.87 M runs, 1.42 samples per run; 76% of runs are one sample, which
-/// hold 53% of the samples. So any scheme that looks a voxel up once per run, even without a
-/// branch (runs cut into groups of up to 4 samples, gaps filled with −0, the identity),
-/// saves at most 29% of the lookups, ~1.6 M × ~55 instructions, while grouping costs ~8 per
-/// sample: under 2% of a pass at best. Not built.
+/// The table, the sums and the count are arguments rather than `self`: measurably faster on
+/// dense scans. Consecutive equal keys are rare (1.42 samples per run
+/// on dense shells, 76% of runs a single sample), so looking a voxel up once per run cannot pay.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
 fn insert<S: TableSlot>(
@@ -455,9 +391,8 @@ fn insert<S: TableSlot>(
 }
 
 /// The home slot of `key` in a table of `mask + 1` slots (a power of two): the top bits of the
-/// key times 2^64/φ, the bits every key bit reaches. (Bits 32 and up, masked, were the home
-/// slot until 2026-12-04: keys that differ only in x, bits 42 and up, then shared all home
-/// bits below 42, so a scan's voxels clustered and a lookup probed 2.3 slots on average.)
+/// key times 2^64/φ, the bits every key bit reaches. (Lower bits would ignore x, whose key
+/// bits are the highest, and cluster a scan's voxels.)
 #[inline(always)]
 fn slot_of(key: u64, mask: usize) -> usize {
     debug_assert!(mask.count_ones() >= 1 && mask.wrapping_add(1).is_power_of_two());
@@ -475,7 +410,7 @@ fn voxel_key_in_range<S: TableSlot>(p: [f64; 3], inv_ds: f64) -> u64 {
 #[inline(always)]
 fn pack_key(s: [f64; 3]) -> u64 {
     s.iter()
-        .fold(0, |key, &v| (key << KEY_BITS) | ((super::evidence::floor_i64(v) + KEY_LIMIT as i64) as u64))
+        .fold(0, |key, &v| (key << KEY_BITS) | ((super::cell_points::floor_i64(v) + KEY_LIMIT as i64) as u64))
 }
 
 /// The tests' reference for [`voxel_key_or_outside`], written plainly: the voxel key, or `None`
@@ -488,7 +423,7 @@ fn voxel_key(p: [f64; 3], inv_ds: f64) -> Option<u64> {
         if !(-KEY_LIMIT..KEY_LIMIT).contains(&s) {
             return None;
         }
-        key = (key << KEY_BITS) | ((super::evidence::floor_i64(s) + KEY_LIMIT as i64) as u64);
+        key = (key << KEY_BITS) | ((super::cell_points::floor_i64(s) + KEY_LIMIT as i64) as u64);
     }
     Some(key)
 }
@@ -570,10 +505,6 @@ impl TrainingBuilder {
         out.dropped_points = 0;
         out.beyond_range = 0;
         // A point that is not finite has no voxel key, so the key test drops it too.
-        // Tried and not kept (2026-12-06, eighth session): the hits in a table of
-        // `CompactSlot`s, without range tests, when a pass over the points found them all in
-        // range and within its span: dense training 11.1–11.8 → 11.8–12.4 ms per scan (14
-        // alternated runs, both orders), slower.
         for chunk in points_world.chunks(SAMPLE_BUFFER) {
             self.samples.clear();
             self.samples.extend(chunk.iter().map(|p| p.map(f64::from)));
@@ -591,9 +522,6 @@ impl TrainingBuilder {
         let mut samples = 0.0;
         // Per chunk of hits, their offsets from the origin, lengths and directions first, in
         // loops without branches, so the square roots and divisions go four to an instruction.
-        // (2026-12-06, eighth session, with the same for the extra samples' shells and for
-        // `labelled_sub_points`: dense drive 24.4–25.1 → 23.2–24.4 ms per scan over ten
-        // alternated runs of `bench ingest --lidar64 6 --repeat 2`, same bits.)
         let mut vs = [[0.0f64; 3]; RAY_CHUNK];
         let mut rs = [0.0f64; RAY_CHUNK];
         for chunk in self.centroids.chunks(RAY_CHUNK) {
@@ -674,45 +602,15 @@ impl TrainingBuilder {
     /// every sample must be inside the key range, [`shells_separate_voxels`] must hold, and a
     /// shell's voxels must fit the table's slot type.
     ///
-    /// Kept (2026-12-05, fifth session, AMD EPYC VM with 1 MiB of L2 per core, `bgkmap bench
-    /// ingest --lidar64 6 --repeat 2 --threads 1`, five alternated runs): [`CompactSlot`]s, 8
-    /// bytes where [`Slot`]s take 16, for the shells of a scan within ±400 m at 0.1 m. A
-    /// dense scan's busiest shells hold 14k–17k voxels, a table of 64k slots: 1 MiB of
-    /// 16-byte slots and the sums did not fit in L2, 512 KiB do. Training 13.66–14.03 →
-    /// 12.97–13.25 ms per scan, same bits. Rounds of 128 points for these tables too (they
-    /// are no longer past [`LARGE_TABLE_BYTES`]) measured the same as rounds of 32.
+    /// [`CompactSlot`]s, 8 bytes where [`Slot`]s take 16, serve the shells of a scan within
+    /// ±400 m at 0.1 m: a dense scan's busiest shells hold 14k–17k voxels, a table of 64k slots,
+    /// and 512 KiB of slots and sums fit in a 1 MiB L2 where 1 MiB of 16-byte slots did not.
     ///
-    /// Kept (2026-12-06, eleventh session): one pass over the rays per shell, placing each
-    /// ray's sample and the extras between them, where there were three (drop the rays that
-    /// had ended, find the run of rays before each extra, place the runs); a ray that has ended
-    /// writes its sample without counting it, and the ended rays are dropped once a quarter
-    /// have (dropping them every shell moved every 40-byte ray after the first that had ended).
-    /// `--lidar64 2 --repeat 1` (callgrind): 2,205.8 → 2,202.3 M instructions, the evidence's
-    /// unchanged to the instruction. Dense training (`bench ingest --lidar64 6 --repeat 2
-    /// --threads 1`, ten alternated runs on a busy 2.1 GHz Xeon): median 17.0 → 15.3 ms per
-    /// scan, the five calmest runs 15.6–15.8 → 14.4–15.2, faster in six of the ten pairs.
-    /// (The sixth session had placed the rays between two extras as one run instead of a test
-    /// per ray, 1.1% fewer instructions then; the passes that needed are gone. Tried and not
-    /// kept then: finding each run's end by binary search, and taking the rays 1024 at a time
-    /// through the three passes so they stayed in the cache, no faster.)
-    ///
-    /// Measured (2026-12-07, eighteenth session, Xeon VM) in one process, the six dense scans'
-    /// training alternated call by call between two builds of it, 20 to 40 rounds, the median
-    /// of the rounds' ratios (steadier than whole runs on this host). Of ~17 ms per scan in
-    /// that loop, the shells' table inserts took ~8.8 ms (1.37 M samples a scan, ~6.4 ns
-    /// each): ~2.6 ms for their keys, home slots and prefetches, ~7 ms for the insert loop
-    /// (timing probes that skipped them). Tried and not kept:
-    /// - each voxel's sum in its slot (32-byte slots: key and count in one word, then the sum,
-    ///   emptied to −0), so that a round's prefetched home slots bring the sums too: same bits,
-    ///   ×0.957 to ×0.995 in six sets (faster in 22 to 29 of 30 rounds), 0.1–0.7 ms a scan,
-    ///   not worth a third table type. At three-quarters load ×1.02, slower; with the active
-    ///   slots sized per shell from the previous shell's voxels ×1.03, slower;
-    /// - this loop over the rays in a function of its own, where `live` stayed in a register
-    ///   (here it is kept on the stack, a store and a load per ray): ×0.994 and ×0.995
-    ///   (faster in 22 of 30 and 28 of 40 rounds), ~0.1 ms a scan.
-    ///
-    /// Nor, by estimate (not built), a sort of each shell's keys instead of the table: five
-    /// 8-bit radix passes over (key, index) pairs, at ~1.3 ns a pass, would cost about the
+    /// One pass over the rays per shell places each ray's sample and the extras between them;
+    /// a ray that has ended writes its sample without counting it, and the ended rays are
+    /// dropped once a quarter have (dropping them every shell moved every 40-byte ray after the
+    /// first that had ended). The shells' table inserts are about half of a dense scan's
+    /// training.
     /// table's 6.4 ns a sample before any summing.
     fn frees_by_shell<S: TableSlot>(
         &mut self,
@@ -780,8 +678,8 @@ impl TrainingBuilder {
                         e += 1;
                         next_order = extras.get(e).map_or(u32::MAX, |x| x.order);
                     }
-                    // Not `push_sample` with a count of 0 or 1 (or a subtraction after it): 24 M
-                    // more instructions for the two scans of `--lidar64 2` (callgrind), twice.
+                    // Not `push_sample` with a count of 0 or 1 (or a subtraction after it):
+                    // that compiles to many more instructions.
                     if n >= SAMPLE_BUFFER {
                         table.add_all::<false>(buf, inv_ds);
                         n = 0;
@@ -852,16 +750,9 @@ struct Extra {
 /// shell by shell, each shell in la3dm's order, with the same bits per voxel, into a table
 /// that holds one shell at a time: the voxels at one distance, not the scan's.
 ///
-/// Measured (2026-12-05, 2-vCPU Xeon VM, `bgkmap bench ingest --lidar64 6 --repeat 2
-/// --threads 1`, five runs of each build alternated): a dense scan's training took 13.4 to
-/// 13.8 ms, against 15.4 to 16.5 ray by ray; its free table of 0.2 to 0.5 M voxels (tens of MB)
-/// had missed the caches on most samples. Small scans keep to ray by ray
-/// ([`SHELL_MIN_SAMPLES`]). Tried and not kept: collecting shells in one table up to 16k voxels
-/// (training 15.5 to 16.1 ms) and dropping finished rays in the sampling pass (1 ms slower).
-/// Nor (2026-12-05, third session) keeping and dropping 8-byte (ray number, last shell) pairs
-/// instead of the 40-byte rays, each ray's direction read by its number: 13.2–14.2 ms against
-/// 13.4–15.1 over eight alternations, no difference the noise resolved, so the rays' traffic
-/// through the caches is not what a shell waits on.
+/// This is why the dense scans' training is fast: ray by ray, their free table of 0.2–0.5 M
+/// voxels (tens of MB) missed the caches on most samples. Small scans keep to ray by ray
+/// ([`SHELL_MIN_SAMPLES`]).
 #[derive(Debug, Clone, Copy)]
 struct FreeRay {
     n: [f64; 3],
@@ -888,7 +779,7 @@ fn shell_of(p: [f64; 3], o: [f64; 3], ds: f64, inv_ds: f64, fr: f64) -> u32 {
 fn centre_distance_squared(p: [f64; 3], o: [f64; 3], ds: f64, inv_ds: f64) -> f64 {
     // The voxel as the table keys it (`v · inv_ds`, floored), and its centre as
     // `CellKey::centre` gives it.
-    let c = p.map(|v| (super::evidence::floor_f64(v * inv_ds) + 0.5) * ds);
+    let c = p.map(|v| (super::cell_points::floor_f64(v * inv_ds) + 0.5) * ds);
     let d = [c[0] - o[0], c[1] - o[1], c[2] - o[2]];
     d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
 }
@@ -930,9 +821,6 @@ fn along(o: [f64; 3], n: [f64; 3], d: f64) -> [f64; 3] {
 ///
 /// The regular samples go in as one run: their number first (from an estimate, corrected by
 /// the same test `i·fr < ray_len` a sample-by-sample loop would stop on), then one `extend`.
-/// (2026-12-06, seventh session: training 69.7 → 67.7 M instructions over four passes of the
-/// 12 sample scans, callgrind; per-scan training 0.131–0.136 against 0.128–0.135 ms over five
-/// alternated runs, a difference the noise does not resolve.)
 fn free_samples(out: &mut Vec<[f64; 3]>, o: [f64; 3], n: [f64; 3], ray_len: f64, fr: f64) {
     let at = |d: f64| along(o, n, d);
     let below = |i: u32| f64::from(i) * fr < ray_len;

@@ -3,9 +3,11 @@
 //! with [`EvidenceMap::commit_edit`], so a caller can first make the change durable and only then
 //! publish it (and drop the edit if storing fails).
 
-use super::evidence::{BlockEvidence, ScanDelta};
-use super::key::BlockKey;
-use super::map::{BlockSink, EvidenceMap};
+use super::delta::ScanDelta;
+use super::sink::BlockSink;
+use crate::core::block::BlockEvidence;
+use crate::core::key::BlockKey;
+use crate::core::map::EvidenceMap;
 use rustc_hash::FxHashMap;
 use std::sync::Arc;
 

@@ -8,10 +8,11 @@
 //! is what makes long rays cheap (8 m rays on the outdoor benchmark map: 0.6 M/s stepping every
 //! cell, 1.3–1.5 M/s skipping; the time left is mostly the block lookups).
 
-use super::evidence::{BlockEvidence, BlockSummary};
-use super::key::{BLOCK_EDGE, BLOCK_MASK, BlockKey, CellKey};
-use super::map::{CellEstimate, CellState, Evidence, EvidenceMap};
-use super::params::Thresholds;
+use crate::core::block::{BlockEvidence, BlockSummary};
+use crate::core::key::{BLOCK_EDGE, BLOCK_MASK, BlockKey, CellKey};
+use crate::core::map::EvidenceMap;
+use crate::core::params::Thresholds;
+use crate::core::posterior::{CellEstimate, CellState, Evidence};
 use std::ops::ControlFlow;
 
 /// Where a ray stops.

@@ -9,12 +9,10 @@
 //! interpolation in i32 lanes, see [`KernelTable::quantized_lane`]).
 //!
 //! With `sub_cells = n` (the default, 8), training points sit at sub-cell centres
-//! ([`to_cell_units`](super::evidence::to_cell_units)), so `f` takes only `n` values per axis
+//! ([`to_cell_units`](super::cell_points::to_cell_units)), so `f` takes only `n` values per axis
 //! and a window is one of `n³` ([`SnappedWindows`], 128 KiB for la3dm's geometry): computed once
-//! per map geometry by the same arithmetic, then read and added — on the sample scans that cut
-//! evidence by 30–40% (2026-12-03: 1.55 → 0.95–1.10 ms per scan, the two binaries alternated
-//! five and eight times), on the dense drive 68–72 → 38–48 ms. Placing
-//! such a point is integer arithmetic too, read from a table (`SnappedWindows::place`): the
+//! per map geometry by the same arithmetic, then read and added (about a third less evidence
+//! time than computing each window). Placing such a point is integer arithmetic too, read from a table (`SnappedWindows::place`): the
 //! float-to-int casts of `Brick::place` (saturating, NaN-checked) cost as much as the old
 //! window's lookups.
 //!
@@ -30,19 +28,18 @@
 //! `CellMarks`); otherwise a bucket is folded every [`BRICK_POINTS`] points.
 //!
 //! Bits equal the reference: every lane computes `(o − f)²` per axis and sums z, y, then x,
-//! exactly as [`pair_coord`](super::evidence::pair_coord).
+//! exactly as [`pair_coord`](super::cell_points::pair_coord).
 
-use super::evidence::{PairGeometry, SUB_FRAC, SubPoint, floor_i32, split_point};
-use super::kernel::{FIXED_SHIFT, KernelTable, round_to_i64};
-use super::key::BLOCK_EDGE;
-use super::scatter::CellPoint;
+use super::cell_points::{CellPoint, PairGeometry, SUB_FRAC, SubPoint, floor_i32, split_point};
+use super::kernel::{KernelTable, round_to_i64};
+use crate::core::key::BLOCK_EDGE;
+use crate::core::posterior::FIXED_SHIFT;
 
 const B: usize = BLOCK_EDGE as usize;
 
 /// Blocks per bucket edge: a bucket, and the brick its windows go to, span `S`³ blocks. Two
-/// blocks a side (a 20³ brick for la3dm's geometry, 62 KiB for both labels) replaced one
-/// (2026-12-04): a block's margins are folded into its neighbours, and inside a bucket of 2³
-/// blocks there are none.
+/// blocks a side (a 20³ brick for la3dm's geometry, 62 KiB for both labels): a block's
+/// margins are folded into its neighbours, and inside a bucket of 2³ blocks there are none.
 pub const S: usize = 2;
 /// Cells per bucket edge.
 pub const SB: usize = S * B;
@@ -52,30 +49,9 @@ const R: usize = S + 2;
 /// Points of one label a brick takes between folds: each adds at most `2^F` to a cell, and
 /// brick cells are `u32` (masses are never negative), so `BRICK_POINTS · 2^F < 2^32`.
 ///
-/// Tried and not kept (2026-12-05): counting windows per label and per region (a block or a
-/// margin slab) and folding only before a window would bring a region past `BRICK_POINTS`.
-/// A third of all folds come mid-bucket (sample scans: 13 of 39 per scan; dense drive: 614 of
-/// 1,790), and a region collects about an eighth of a bucket's windows, so those folds would
-/// almost all go. But the count (a loop over the 1 to 8 regions a window touches, whose exit
-/// the predictor cannot learn) cost more than the folds it saved: sample-scan evidence
-/// 0.329–0.352 → 0.361–0.374 ms, four alternated runs. A fold costs ~3 µs, so the 13 folds
-/// saved were worth ~8 ns per point of a scan (~5k), and the count cost more. Nor folding only the label that filled the brick
-/// (the other label's cells neither read nor changed until the bucket ends): the folds'
-/// instructions fell 53.7 → 49.9 M over 48 sample scans (callgrind, of 283 M), but blocks
-/// taken narrow by a free-only fold were widened by the later one (memset +1.6 M), and the
-/// evidence measured 0.345–0.366 against 0.337–0.348 ms, four alternated runs. Nor counting
-/// per column of regions along x (16 byte counters per label in a `u128`, a window's columns
-/// from a table, the limit tested byte-wise without branches): the folds fell by 7 M
-/// instructions over those 48 scans (columns fill faster than regions: a window touches ~1.9
-/// of them), the counting cost 13 M (280.9 against 275.5 M in all).
-///
-/// Kept (2026-12-05): no limit at all while no bucket cell holds two points of a label (see
-/// `CellMarks`), which is the rule for voxel centroids with `ds` equal to the cell edge. A
-/// bit per cell and label costs ~15 instructions a point; the sample scans' training points
-/// never share a cell, and their folds went from 1,948 to 1,420 (one per bucket) over 48
-/// scans. Over 48 sample scans 275.5 → 267.1 M instructions, over 4 dense
-/// 64-beam scans 2.80 → 2.73 G (callgrind); dense evidence 21.4–22.1 → 19.9–20.5 ms per scan
-/// (three alternated runs, a busy host).
+/// No limit applies while no bucket cell holds two points of a label (see `CellMarks`), which
+/// is the rule for voxel centroids with `ds` equal to the cell edge: a bit per cell and label
+/// costs ~15 instructions a point, and then a bucket is folded once, at its end.
 pub const BRICK_POINTS: u32 = u32::MAX >> FIXED_SHIFT;
 
 /// `SPREAD[axis][mask]`: the region mask (bit `x + R·(y + R·z)` for region (x, y, z)) of every
@@ -187,9 +163,6 @@ impl Brick {
     /// Marks bucket cell `cell` (`x + SB·(y + SB·z)`) as holding a point of label `label`;
     /// false when the brick must be folded before it takes that point (the marks then need
     /// no undoing: a fold clears them). [`Self::note`] counts the point once its window is in.
-    /// Tried and not kept (2026-12-05): one call that also counts the point and notes its
-    /// regions, before the window's adds: 267.1 → 267.7 M instructions over 48 sample scans
-    /// (268.5 M counting without a branch).
     #[inline(always)]
     fn admit(&mut self, label: usize, cell: usize) -> bool {
         let word = &mut self.marks.0[(label * MARK_WORDS + cell / 64) % (2 * MARK_WORDS)];
@@ -308,7 +281,7 @@ impl Brick {
 
     /// [`Self::add_points`] for points at sub-cell centres given as [`SubPoint`]s, whose
     /// windows are read from `windows`. Not inlined: in its caller the loop had fewer
-    /// registers (272.2 against 268.1 M instructions over 48 sample scans, callgrind).
+    /// registers and ran more instructions.
     #[inline(never)]
     pub fn add_sub_points<const W: usize, const W3: usize>(
         &mut self,
@@ -370,7 +343,7 @@ const MAX_SNAPPED_BYTES: usize = 1 << 20;
 /// computed window, then read and added (a few vector adds per window instead of W³ table
 /// lookups).
 ///
-/// [`to_cell_units`]: super::evidence::to_cell_units
+/// [`to_cell_units`]: super::cell_points::to_cell_units
 #[derive(Debug, Default)]
 pub struct SnappedWindows {
     /// What `values` was built for: ell (bits), scale (bits), sub-cells, W.
@@ -550,8 +523,7 @@ fn add_window<const W: usize, const W3: usize>(
 /// first cell is `at`.
 ///
 /// Every row is added, zero or not. No row is zero in every window, so none can be left out at
-/// compile time (worked out 2026-12-07 for la3dm's geometry: a window starts where its point's
-/// offset puts it, and for a point 1/16 cell past its cell's centre the corner rows lie 1.5
+/// compile time (for la3dm's geometry: a window starts where its point's offset puts it, and for a point 1/16 cell past its cell's centre the corner rows lie 1.5
 /// cells away, inside the kernel's 2); leaving out each window's own zero rows would make the
 /// row loop's length vary from point to point, a branch no predictor learns.
 #[inline(always)]
@@ -594,7 +566,7 @@ pub(crate) fn window_values_portable<const W: usize, const W3: usize>(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::core::evidence::to_cell_units;
+    use crate::core::integrate::cell_points::to_cell_units;
 
     /// Every sub-cell position in every cell of a bucket, in buckets of either sign: the table
     /// placement finds the brick index and regions of [`Brick::place`], and the precomputed

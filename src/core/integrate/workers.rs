@@ -1,10 +1,9 @@
 //! Ingest on several cores: [`Workers`], an integrator per thread whose threads outlive a batch,
 //! and [`integrate_parallel`], which spreads a batch of scans over them.
 //!
-//! Starting two threads per batch and joining them after it cost 60–70 µs and 70–120 µs of every
-//! pass over the 12 sample scans (3.6 ms on two cores; measured on the 2-vCPU Xeon VM with
-//! timestamps in the pass), about 5% of a pass, on a machine where an idle vCPU is slow to wake.
-//! Threads that wait for the next batch cost a message instead.
+//! Starting threads per batch and joining them after it cost about 5% of a pass over the
+//! sample scans, on a machine where an idle vCPU is slow to wake; threads that wait for the
+//! next batch cost a message instead.
 //!
 //! This module's one `unsafe`: a batch's jobs borrow the caller's
 //! scans and closure, which a thread that outlives the call cannot name, so their lifetime is
@@ -12,10 +11,12 @@
 //! borrowed data can go (`Batch`'s `Drop`, which runs on unwinding as well).
 #![allow(unsafe_code)]
 
-use super::evidence::BlockEvidence;
-use super::key::BlockKey;
-use super::map::{BlockSink, EvidenceMap, Integrator, add_whole};
-use super::params::MapParams;
+use super::integrator::Integrator;
+use super::sink::{BlockSink, add_whole};
+use crate::core::block::BlockEvidence;
+use crate::core::key::BlockKey;
+use crate::core::map::EvidenceMap;
+use crate::core::params::MapParams;
 use std::any::Any;
 use std::marker::PhantomData;
 use std::sync::Arc;
@@ -32,12 +33,8 @@ pub struct Workers {
     /// rather than by the calling thread after the last scan, where the pass waits for it.
     /// They hold memory until then (the sample scans: ~400 blocks of 4 KiB).
     ///
-    /// Kept (2026-12-05, seventh session, `bgkmap bench ingest S/*.pcd --repeat 300 --threads
-    /// 2`, six alternated runs on a busy host): adding the helper's map after the last scan took
-    /// 0.143–0.193 ms per pass (median 0.162) against 0.148–0.284 (0.204), and two workers were
-    /// 1.64–1.75× one (median 1.71) against 1.41–1.70× (1.68). The calling thread's puts took
-    /// ~35 µs with the frees and ~15 without. Freeing them in the jobs that add the shares
-    /// instead was slower (0.19–0.28 ms): both threads then free into the helper's heap at once.
+    /// Freeing them in the jobs that add the shares instead is slower: both threads then free
+    /// into the helper's heap at once.
     spent: Vec<Vec<Arc<BlockEvidence>>>,
 }
 
@@ -265,11 +262,9 @@ fn add_block_pairs(pairs: &mut [BlockPair]) {
 }
 
 /// Adds a helper's `map` into `sink`: blocks `sink` lacks are moved in, the others are added in
-/// equal shares on the calling thread and every helper of `batch`; the helper's blocks left
-/// over go to `spent` (see [`Workers`]). On the sample scans the helper's map holds ~760
-/// blocks per pass, of which 380–410 are the sink's too (counted 2026-12-05, seventh
-/// session); added on the calling thread alone they took 0.40–0.48 ms after the last scan, in
-/// shares 0.28–0.34 ms (four alternated runs).
+/// over go to `spent` (see [`Workers`]). On the sample scans about half of a helper's blocks
+/// are the sink's too; adding them in shares rather than on the calling thread alone shortens
+/// the wait after the last scan.
 fn add_map_on_all_threads<K: BlockSink + ?Sized>(
     map: EvidenceMap,
     sink: &mut K,

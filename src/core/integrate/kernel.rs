@@ -5,16 +5,14 @@
 //! scaled when a cell is read.
 //!
 //! Evidence must be bit-identical on every machine and in every order, so each pair's
-//! contribution is an integer `q = round(k̃ · 2^F)` ([`FIXED_SHIFT`]) computed by
-//! [`KernelTable::quantized`]: a table of the unit kernel over `t = u²` (built with the pure-Rust
-//! `libm`, not the platform's `sin`/`cos`), linearly interpolated in plain IEEE f64 arithmetic.
+//! contribution is an integer `q = round(k̃ · 2^F)`
+//! ([`FIXED_SHIFT`](crate::core::posterior::FIXED_SHIFT)) computed by [`KernelTable::quantized`]:
+//! a table of the unit kernel over `t = u²` (built with the pure-Rust `libm`, not the
+//! platform's `sin`/`cos`), linearly interpolated in plain IEEE f64 arithmetic.
 //! Indexing by `u²` means no square root per pair. Interpolation error is below 4e-7 (largest near
 //! `u = 0.01`), far below the 1e-6 of the reference table.
 
-/// Fractional bits of the fixed-point evidence sums (algorithm.md §7).
-pub const FIXED_SHIFT: u32 = 24;
-/// `2^FIXED_SHIFT` as f64: one unit of kernel mass.
-pub const FIXED_ONE: f64 = (1u64 << FIXED_SHIFT) as f64;
+use crate::core::posterior::FIXED_ONE;
 
 /// The unit sparse kernel (σ0 = 1) at distance `d_m` for kernel length `ell_m`, in f64 with an
 /// explicit cut-off (la3dm clamps an f32 evaluation instead).
@@ -155,6 +153,7 @@ impl KernelTable {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::core::posterior::FIXED_SHIFT;
 
     /// algorithm.md §3 reference values.
     #[test]

@@ -8,9 +8,10 @@
 //! same bits. Points keep their order: downsampling sums points voxel by voxel, so the order
 //! is part of the result.
 
-use super::evidence::ScanDelta;
-use super::map::{BlockSink, Integrator};
-use super::pose::{PointFrame, Pose, PoseError};
+use super::delta::ScanDelta;
+use super::integrator::Integrator;
+use super::sink::BlockSink;
+use crate::core::pose::{PointFrame, Pose, PoseError};
 use std::borrow::Cow;
 
 /// One scan's raw input. Points are finite (non-finite ones are dropped before a scan is
