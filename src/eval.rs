@@ -1,4 +1,4 @@
-//! ROC / AUC of an occupancy map against a ground-truth map (algorithm.md §10).
+//! ROC / AUC of an occupancy map against a ground-truth map (docs/algorithm.md §10).
 //!
 //! # Protocol
 //!

@@ -1,4 +1,4 @@
-//! `bgkmap eval`: ROC / AUC of a map against a ground-truth `.bt` (algorithm.md §10).
+//! `bgkmap eval`: ROC / AUC of a map against a ground-truth `.bt` (docs/algorithm.md §10).
 
 use super::plot::{RocCurve, write_roc_png};
 use crate::core::EvidenceMap;

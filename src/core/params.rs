@@ -1,7 +1,7 @@
 //! Map parameters (fixed when a map is created) and per-query thresholds.
 //!
-//! Defaults are la3dm's HEAD configuration (algorithm.md §8) except the range policy, where
-//! bgkmap keeps no-return rays as free evidence (`RangeMode::Truncate`, algorithm.md §6.2).
+//! Defaults are la3dm's HEAD configuration (docs/algorithm.md §8) except the range policy, where
+//! bgkmap keeps no-return rays as free evidence (`RangeMode::Truncate`, docs/algorithm.md §6.2).
 
 use std::fmt;
 

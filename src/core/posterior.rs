@@ -1,5 +1,5 @@
 //! The posterior of one cell: its evidence, two fixed-point kernel sums, and the Beta
-//! posterior derived from them (algorithm.md Eq. 1, 2, 7 and 9).
+//! posterior derived from them (docs/algorithm.md Eq. 1, 2, 7 and 9).
 //!
 //! A cell stores only `A = Σ_hits q` and `B = Σ_free q` (unit kernel, fixed point). Everything a
 //! reader wants — probability, variance, log-odds, state — is derived on demand from
@@ -12,7 +12,7 @@
 
 use super::params::{MapParams, Thresholds};
 
-/// Fractional bits of the fixed-point evidence sums (algorithm.md §7).
+/// Fractional bits of the fixed-point evidence sums (docs/algorithm.md §7).
 pub const FIXED_SHIFT: u32 = 24;
 /// `2^FIXED_SHIFT` as f64: one unit of kernel mass.
 pub const FIXED_ONE: f64 = (1u64 << FIXED_SHIFT) as f64;

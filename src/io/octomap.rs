@@ -1,7 +1,7 @@
 //! OctoMap `.bt` (binary maximum-likelihood tree) reader and writer.
 //!
 //! This module owns the `.bt` text header and the 2-bits-per-child pre-order payload
-//! (formats.md §1), the conversion between OctoMap keys (0..65535) and bgkmap cell keys
+//! (docs/formats.md §1), the conversion between OctoMap keys (0..65535) and bgkmap cell keys
 //! (OctoMap key − 32768), and building a tree bottom-up from labelled cells with optional
 //! liboctomap-style pruning. Reading validates strictly (first line, `res > 0`, payload length,
 //! `size` = decoded nodes) and never panics; writing reproduces liboctomap's bytes for the given

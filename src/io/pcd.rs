@@ -1,6 +1,6 @@
 //! PCD (Point Cloud Library v0.7) reader and writer.
 //!
-//! This module owns the PCD header grammar (formats.md §3.1) and the three payload modes:
+//! This module owns the PCD header grammar (docs/formats.md §3.1) and the three payload modes:
 //! `ascii`, `binary` (array of structs) and `binary_compressed` (LZF, struct of arrays, via
 //! [`crate::io::lzf`]). The reader extracts only x/y/z (F4 or F8), skips every other field by
 //! its byte size, reads exactly `POINTS` records, ignores trailing bytes and drops non-finite

@@ -1,4 +1,4 @@
-//! PLY point export (formats.md §4).
+//! PLY point export (docs/formats.md §4).
 //!
 //! This module owns the binary little-endian PLY vertex layout bgkmap writes: one vertex per
 //! point with `x y z` (float), `red green blue` (uchar) and `probability` (float), no faces.

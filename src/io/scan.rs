@@ -1,4 +1,4 @@
-//! A decoded scan in the world frame, and the PCD → scan conversion (formats.md §3.4).
+//! A decoded scan in the world frame, and the PCD → scan conversion (docs/formats.md §3.4).
 
 use super::pcd::PcdCloud;
 

@@ -51,7 +51,7 @@ fn sample_order_merge_and_accuracy() {
 }
 
 /// With la3dm's range handling (`drop`: hits beyond max range are discarded), the AUC matches
-/// the exact-BGK reference of algorithm.md (0.9035): our inference is the paper's.
+/// the exact-BGK reference of docs/algorithm.md (0.9035): our inference is the paper's.
 #[test]
 #[cfg_attr(not(bgkmap_sample_data), ignore = "needs the sample data ../shared/data/la3dm")]
 fn sample_drop_mode_matches_exact_bgk_reference() {

@@ -2,7 +2,7 @@
 //!
 //! Every cell centre within `ell` of a training point receives that point's quantised unit
 //! kernel mass ([`KernelTable::quantized`]): hits add to `A`, free samples to `B` (the exact
-//! kernel sum of algorithm.md §5). This module converts training points to cell units (at
+//! kernel sum of docs/algorithm.md §5). This module converts training points to cell units (at
 //! sub-cell centres by default, [`SubPoint`]s), splits them into cell and offset, and computes
 //! a pair's table coordinate ([`pair_coord`]) the same way for the fast paths and for
 //! [`brute_force_cell`], the gather-side reference the tests compare against.

@@ -155,7 +155,7 @@ mod tests {
     use super::*;
     use crate::core::posterior::FIXED_SHIFT;
 
-    /// algorithm.md §3 reference values.
+    /// docs/algorithm.md §3 reference values.
     #[test]
     fn kernel_matches_reference_table() {
         let head = [

@@ -1,6 +1,6 @@
 //! A reader for OMG CDR (XCDR1) as ROS 2 serialises messages: a 4-byte encapsulation header,
 //! then the body, every primitive of size n aligned to a multiple of n counted from the first
-//! byte after the header (formats.md §5.2).
+//! byte after the header (docs/formats.md §5.2).
 //!
 //! Only what ROS messages need: fixed-size primitives, strings (`u32` length including the NUL)
 //! and sequences (`u32` count). Every read is bounds-checked; a failure names the field it was

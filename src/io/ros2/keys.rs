@@ -1,4 +1,4 @@
-//! rmw_zenoh key expressions (formats.md §5.1): `<domain_id>/<topic>/<type name>/<type hash>`,
+//! rmw_zenoh key expressions (docs/formats.md §5.1): `<domain_id>/<topic>/<type name>/<type hash>`,
 //! the topic without its leading and trailing `/` (inner ones kept). bgkmap subscribes with `*`
 //! in the hash chunk, so every ROS 2 distribution matches (Humble: `TypeHashNotSupported`,
 //! Iron and later: `RIHS01_…`).

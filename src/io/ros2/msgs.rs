@@ -1,5 +1,5 @@
 //! Decoders for the ROS 2 messages the bridge reads: `sensor_msgs/PointCloud2`,
-//! `geometry_msgs/PoseStamped` and `tf2_msgs/TFMessage` (layouts in formats.md §5.3–5.4).
+//! `geometry_msgs/PoseStamped` and `tf2_msgs/TFMessage` (layouts in docs/formats.md §5.3–5.4).
 //!
 //! A point cloud is read in place: the decoder borrows the payload and copies out only x, y, z.
 //! Non-finite points are kept, so the service drops and counts them as it does for every

@@ -1,4 +1,4 @@
-//! Golden messages: the PointCloud2 of formats.md §5.3 byte for byte, and variants of it.
+//! Golden messages: the PointCloud2 of docs/formats.md §5.3 byte for byte, and variants of it.
 
 use super::*;
 
@@ -10,7 +10,7 @@ fn le_f32(values: &[f32]) -> Vec<u8> {
     values.iter().flat_map(|v| v.to_le_bytes()).collect()
 }
 
-/// formats.md §5.3: stamp 1 s 2 ns, frame "map", 1 × 2 points, fields x, y, z FLOAT32.
+/// docs/formats.md §5.3: stamp 1 s 2 ns, frame "map", 1 × 2 points, fields x, y, z FLOAT32.
 fn golden_cloud(points: [[f32; 3]; 2]) -> Vec<u8> {
     let mut m = hex("00 01 00 00  01 00 00 00 02 00 00 00  04 00 00 00 6d 61 70 00  01 00 00 00 02 00 00 00
          03 00 00 00
@@ -124,7 +124,7 @@ fn wrong_point_fields_are_refused_with_the_reason() {
 
 #[test]
 fn pose_stamped_aligns_its_doubles_after_the_frame() {
-    // frame "odom" (length 5): the f64s start at body offset 24 (formats.md §5.4).
+    // frame "odom" (length 5): the f64s start at body offset 24 (docs/formats.md §5.4).
     let mut m = hex("00 01 00 00  07 00 00 00 00 00 00 00  05 00 00 00 6f 64 6f 6d 00  00 00 00 00 00 00 00");
     for v in [1.0f64, 2.0, 3.0, 0.0, 0.0, 0.6, 0.8] {
         m.extend_from_slice(&v.to_le_bytes());
