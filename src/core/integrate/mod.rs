@@ -5,6 +5,7 @@
 pub mod cell_points;
 pub mod delta;
 pub mod edit;
+mod free_space;
 pub mod integrator;
 pub mod kernel;
 pub mod raw_scan;
@@ -12,6 +13,7 @@ pub mod scatter;
 pub mod simd;
 pub mod sink;
 pub mod training;
+mod voxel_table;
 pub mod window;
 pub mod workers;
 
