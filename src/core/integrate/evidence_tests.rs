@@ -1,5 +1,6 @@
 use super::cell_points::*;
 use super::delta::*;
+use super::floor::{floor_f64, floor_i32, floor_i64};
 use super::kernel::KernelTable;
 use super::scatter::Scatter;
 use super::training::{TrainingBuilder, TrainingSet};

@@ -20,7 +20,6 @@ impl TrainingBuilder {
     /// dropped once a quarter have (dropping them every shell moved every 40-byte ray after the
     /// first that had ended). The shells' table inserts are about half of a dense scan's
     /// training.
-    /// table's 6.4 ns a sample before any summing.
     ///
     /// [`CompactSlot`]: super::voxel_table::CompactSlot
     /// [`Slot`]: super::voxel_table::Slot
@@ -193,7 +192,7 @@ pub(super) fn shell_of(p: [f64; 3], o: [f64; 3], ds: f64, inv_ds: f64, fr: f64) 
 fn centre_distance_squared(p: [f64; 3], o: [f64; 3], ds: f64, inv_ds: f64) -> f64 {
     // The voxel as the table keys it (`v · inv_ds`, floored), and its centre as
     // `CellKey::centre` gives it.
-    let c = p.map(|v| (super::cell_points::floor_f64(v * inv_ds) + 0.5) * ds);
+    let c = p.map(|v| (super::floor::floor_f64(v * inv_ds) + 0.5) * ds);
     let d = [c[0] - o[0], c[1] - o[1], c[2] - o[2]];
     d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
 }

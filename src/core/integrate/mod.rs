@@ -5,6 +5,7 @@
 pub mod cell_points;
 pub mod delta;
 pub mod edit;
+pub mod floor;
 mod free_space;
 pub mod integrator;
 pub mod kernel;

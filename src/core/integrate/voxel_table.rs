@@ -156,8 +156,7 @@ impl TableSlot for CompactSlot {
         // Two's complement low bits of each floor: congruent coordinates share them, and
         // voxels less than 2^bits apart on an axis are not congruent.
         (0..3).fold(0, |key, a| {
-            (key << COMPACT_BITS[a])
-                | (super::cell_points::floor_i64(s[a]) as u64 & ((1 << COMPACT_BITS[a]) - 1))
+            (key << COMPACT_BITS[a]) | (super::floor::floor_i64(s[a]) as u64 & ((1 << COMPACT_BITS[a]) - 1))
         })
     }
 }
@@ -372,8 +371,7 @@ fn voxel_key_in_range<S: TableSlot>(p: [f64; 3], inv_ds: f64) -> u64 {
 /// The floors of voxel coordinates `s` (each inside ±2^20) packed as three 21-bit fields.
 #[inline(always)]
 fn pack_key(s: [f64; 3]) -> u64 {
-    s.iter()
-        .fold(0, |key, &v| (key << KEY_BITS) | ((super::cell_points::floor_i64(v) + KEY_LIMIT as i64) as u64))
+    s.iter().fold(0, |key, &v| (key << KEY_BITS) | ((super::floor::floor_i64(v) + KEY_LIMIT as i64) as u64))
 }
 
 /// The tests' reference for [`voxel_key_or_outside`], written plainly: the voxel key, or `None`
@@ -386,7 +384,7 @@ fn voxel_key(p: [f64; 3], inv_ds: f64) -> Option<u64> {
         if !(-KEY_LIMIT..KEY_LIMIT).contains(&s) {
             return None;
         }
-        key = (key << KEY_BITS) | ((super::cell_points::floor_i64(s) + KEY_LIMIT as i64) as u64);
+        key = (key << KEY_BITS) | ((super::floor::floor_i64(s) + KEY_LIMIT as i64) as u64);
     }
     Some(key)
 }

@@ -30,7 +30,8 @@
 //! Bits equal the reference: every lane computes `(o − f)²` per axis and sums z, y, then x,
 //! exactly as [`pair_coord`](super::cell_points::pair_coord).
 
-use super::cell_points::{CellPoint, PairGeometry, SUB_FRAC, SubPoint, floor_i32, split_point};
+use super::cell_points::{CellPoint, PairGeometry, SUB_FRAC, SubPoint, split_point};
+use super::floor::floor_i32;
 use super::kernel::{KernelTable, round_to_i64};
 use crate::core::key::BLOCK_EDGE;
 use crate::core::posterior::FIXED_SHIFT;

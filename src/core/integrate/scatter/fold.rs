@@ -122,7 +122,6 @@ impl FoldBlock for &mut BlockEvidence {
 
 /// Adds the touched regions of the brick into the blocks around `block` (the bucket's) in
 /// `target`, zeroing them.
-///
 pub(super) fn fold_brick(brick: &mut Brick, block: [i32; 3], target: &mut impl FoldTarget) {
     // The margin is 1 to 3 cells for every width the window path compiles (`window_shape`);
     // a margin and edge known at compile time make every row a fixed-length vector operation.
@@ -138,7 +137,6 @@ pub(super) fn fold_brick(brick: &mut Brick, block: [i32; 3], target: &mut impl F
 /// of regions: the regions that share a y and a z range (along x the low margin, the `S`
 /// blocks and the high margin) are tested together, one brick row of `E` cells at a time
 /// (when no margin of them was touched, just the blocks' cells), and then each x region's rows
-/// with mass are folded into its block. Testing a row's parts in one pass, not region by
 /// with mass are folded into its block. Testing a row's parts in one pass, not region by
 /// region, matters because the margins' rows are two cells wide: testing them on their own
 /// costs as much as testing the block's.

@@ -41,7 +41,7 @@ impl ScanPoint for CellPoint {
 
     #[inline(always)]
     fn cell(&self) -> [i32; 3] {
-        self.0.map(crate::core::integrate::cell_points::floor_i32)
+        self.0.map(crate::core::integrate::floor::floor_i32)
     }
 
     #[inline(always)]
@@ -136,7 +136,7 @@ fn block_bounds(pts: &[CellPoint]) -> ([i32; 3], [i32; 3]) {
             }
         }
     }
-    let block = |v: f64| crate::core::integrate::cell_points::floor_i32(v) >> BLOCK_SHIFT;
+    let block = |v: f64| crate::core::integrate::floor::floor_i32(v) >> BLOCK_SHIFT;
     let lo: [f64; 3] = std::array::from_fn(|i| if lo[1][i] < lo[0][i] { lo[1][i] } else { lo[0][i] });
     let hi: [f64; 3] = std::array::from_fn(|i| if hi[1][i] > hi[0][i] { hi[1][i] } else { hi[0][i] });
     (lo.map(block), hi.map(block))
