@@ -95,3 +95,16 @@ impl Drop for TempDir {
         let _ = std::fs::remove_dir_all(&self.0);
     }
 }
+
+/// A server for one bench run: gRPC and HTTP on free loopback ports, data in `data_dir`,
+/// everything else at its defaults (callers override fields with `..loopback_server(dir)`).
+#[cfg(feature = "server")]
+pub(super) fn loopback_server(data_dir: PathBuf) -> crate::cli::serve::ServerConfig {
+    let loopback = std::net::SocketAddr::from(([127, 0, 0, 1], 0));
+    crate::cli::serve::ServerConfig {
+        data_dir,
+        grpc_listen: loopback,
+        http_listen: loopback,
+        ..Default::default()
+    }
+}

@@ -11,7 +11,7 @@
 //! The data directory is created under `--dir` (default: the current directory, so fsync hits
 //! the real disk, not a tmpfs) and removed afterwards. Measured figures only; nothing asserts.
 
-use super::common::Cleanup;
+use super::common::{Cleanup, loopback_server};
 use super::maps::{merge, restart_in_child, scans_of, write_maps};
 use crate::api::pb;
 use crate::cli::serve::{ServerConfig, runtime, start};
@@ -130,9 +130,6 @@ pub fn run(a: DurableBenchArgs) -> Result<()> {
     let _cleanup = Cleanup(root.clone());
     let scans = scans_of(a.points, a.scans);
     let config = ServerConfig {
-        data_dir: root.join("ingest"),
-        grpc_listen: SocketAddr::from(([127, 0, 0, 1], 0)),
-        http_listen: SocketAddr::from(([127, 0, 0, 1], 0)),
         // Room for every scan of a run, so acknowledgements measure the journal, not the
         // integration backlog (reported separately as the integrated rate).
         max_unapplied_scans: 8 * a.scans,
@@ -141,7 +138,7 @@ pub fn run(a: DurableBenchArgs) -> Result<()> {
         // did whenever fsync fell behind).
         queue_capacity: FLEET_STREAMS * crate::api::STREAM_WINDOW,
         threads_per_scan: a.threads.max(1),
-        ..Default::default()
+        ..loopback_server(root.join("ingest"))
     };
     let ingest = runtime()?.block_on(async {
         let running = start(&config).await?;

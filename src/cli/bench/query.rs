@@ -4,7 +4,7 @@
 //! rays. Each transport (in-process, gRPC, HTTP, zenoh) is one [`QueryTransport`] (in [`super::query_net`]). Measured
 //! figures only; nothing asserts speed.
 
-use super::common::{MIN_BUSY, MIN_CALLS, TempDir, percentile};
+use super::common::{MIN_BUSY, MIN_CALLS, TempDir, loopback_server, percentile};
 use super::query_net::{Grpc, Http, InProcess, MAP, QueryTransport, Zenoh, latencies_under_ingest};
 use super::world::{Workload, build_map, outdoor_params, outdoor_scans};
 use crate::api::zenoh::ZenohConfig;
@@ -128,11 +128,8 @@ pub fn run_bench(a: &QueryBenchArgs) -> Result<Value> {
                        "cells_with_evidence": map.cells_with_evidence(), "map_build_s": build_s,
                        "raw_points": sim.iter().map(|s| s.points_world.len()).sum::<usize>()});
     let config = ServerConfig {
-        data_dir: dir.0.clone(),
-        grpc_listen: SocketAddr::from(([127, 0, 0, 1], 0)),
-        http_listen: SocketAddr::from(([127, 0, 0, 1], 0)),
         zenoh: ZenohConfig { enabled: true, listen: vec!["tcp/127.0.0.1:0".into()], ..Default::default() },
-        ..Default::default()
+        ..loopback_server(dir.0.clone())
     };
     runtime()?.block_on(async {
         let mut in_process = InProcess::new(&map);

@@ -2,10 +2,10 @@
 //! transports (gRPC and HTTP JSON), with the in-process query as the reference. Measured figures
 //! only; nothing here asserts on speed.
 
-use super::common::{MIN_BUSY, MIN_CALLS, TempDir, percentile};
+use super::common::{MIN_BUSY, MIN_CALLS, TempDir, loopback_server, percentile};
 use super::world::random_direction;
 use crate::api::pb;
-use crate::cli::serve::{Running, ServerConfig, runtime, start};
+use crate::cli::serve::{Running, runtime, start};
 use crate::sim::{Lidar, SimScan, simulate};
 use anyhow::{Context, Result, bail, ensure};
 use clap::Args;
@@ -67,12 +67,7 @@ pub fn run_bench(a: &ServerBenchArgs) -> Result<Value> {
     ensure!(a.latency_samples > 0, "--latency-samples must be > 0");
     // Declared before the runtime so it is removed after the server has stopped.
     let dir = TempDir::new()?;
-    let config = ServerConfig {
-        data_dir: dir.0.clone(),
-        grpc_listen: SocketAddr::from(([127, 0, 0, 1], 0)),
-        http_listen: SocketAddr::from(([127, 0, 0, 1], 0)),
-        ..Default::default()
-    };
+    let config = loopback_server(dir.0.clone());
     let (_, sim) = simulate(0, a.scans, &Lidar::default());
     runtime()?.block_on(async {
         let running = start(&config).await?;

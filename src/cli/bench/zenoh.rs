@@ -2,7 +2,7 @@
 //! zenoh peers of its own: scans per second put by several publishers at once, and point-query
 //! throughput over zenoh next to gRPC on the same server and payloads. Measured figures only.
 
-use super::common::TempDir;
+use super::common::{TempDir, loopback_server};
 use super::server::{MAP, Meter, connect, grpc_points, points_request, random_batches, xyz_f32};
 use crate::api::pb;
 use crate::api::zenoh::ZenohConfig;
@@ -14,7 +14,6 @@ use prost::Message as _;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde_json::{Value, json};
-use std::net::SocketAddr;
 use std::time::{Duration, Instant};
 use zenoh::Wait as _;
 use zenoh::qos::CongestionControl;
@@ -68,11 +67,8 @@ pub fn run_bench(a: &ZenohBenchArgs) -> Result<Value> {
     ensure!(a.scans > 0 && a.publishers > 0 && a.batch > 0, "--scans, --publishers and --batch must be > 0");
     let dir = TempDir::new()?;
     let config = ServerConfig {
-        data_dir: dir.0.clone(),
-        grpc_listen: SocketAddr::from(([127, 0, 0, 1], 0)),
-        http_listen: SocketAddr::from(([127, 0, 0, 1], 0)),
         zenoh: ZenohConfig { enabled: true, listen: vec!["tcp/127.0.0.1:0".into()], ..Default::default() },
-        ..Default::default()
+        ..loopback_server(dir.0.clone())
     };
     let (_, sim) = simulate(0, a.scans, &Lidar::default());
     runtime()?.block_on(async {
